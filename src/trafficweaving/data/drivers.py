@@ -1,0 +1,251 @@
+"""Stochastic, interactive simulated human drivers for the traffic-weaving scenario.
+
+A :class:`DriverAgents` object drives a batch of ``m`` cars, one per trial, each facing one other
+car (another simulated driver, or later a robot). Each step, every driver
+
+1. **perceives** the other car's position and speed *relative to its own* as they were
+   ``reaction_steps`` ago (a personal reaction delay), and the other's acceleration;
+2. **forms and revises an intent** to pass in front or behind. Its utility for going in front is
+   ``w_gap * (gap + lookahead * Δv) + lane_bias[lane] + assertiveness + noise + yield_weight * signal``,
+   where ``signal`` reads the other's behaviour (accelerating = claiming the gap, braking =
+   yielding). A hysteresis keeps the intent until the utility clearly flips, so when both claim
+   the gap the one falling behind backs off while the other escalates to full throttle;
+3. **controls longitudinal acceleration** through pedals: a personal comfort throttle level,
+   short brake pulses (sharp when the situation is urgent), coasting (aerodynamic drag only) and
+   cruising back to a preferred speed; pedal lag and pedal noise make it human-smooth;
+4. **changes lane** once the gap allows for its intent (a personal margin that shrinks as the
+   cutoff nears) along a minimum-jerk lateral profile of personal duration, tracked by a
+   damped lateral controller with steering lag and lane-keeping wander.
+
+Personal style (persistent per driver) comes from :class:`DriverStyles`; the population
+distribution and the decision weights are :class:`DriverModel` fields, calibrated so that the
+human–human trial generator reproduces the paper's Table I and the marginal behaviour of the
+authors' real human-in-the-loop drivers (see ``docs/calibration.md``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..scenario import CAR_LENGTH, CUTOFF_X, DT, LANE_CENTRE_Y, SPEED_ALERT
+
+FULL_THROTTLE = 4.5
+"""Largest longitudinal acceleration the simulator's cars reach (m/s², seen in real recordings)."""
+HARD_BRAKE = 8.4
+"""Largest deceleration seen in real recordings, m/s²."""
+DRAG_AT_28 = 0.34
+"""Deceleration when coasting at 28 m/s (real recordings: -0.33 to -0.34 m/s²); grows with v²."""
+
+
+def coasting_acceleration(speed: np.ndarray) -> np.ndarray:
+    """Acceleration of a car with both pedals released (m/s²) at ``speed`` (m/s), any shape."""
+    return -DRAG_AT_28 * (np.asarray(speed) / 28.0) ** 2
+
+
+@dataclass(frozen=True)
+class DriverModel:
+    """Population distribution of driving styles and the shared decision weights.
+
+    Units: m, s, m/s, m/s². ``*_range`` fields are uniform ranges ``(low, high)`` of a personal
+    trait; ``*_sd`` fields are standard deviations.
+    """
+
+    # decision (calibrated against Table I)
+    w_gap: float = 0.30
+    """Weight of the projected gap in the front/behind utility, 1/m."""
+    lookahead: float = 4.0
+    """Horizon over which a driver projects the relative speed into a gap, s."""
+    lane_bias_right: float = 0.45
+    """Extra utility of going in front for the car starting in the right lane (it moves into the
+    faster, left lane); Table I shows the right-lane car in front in 62 % of equal-speed trials."""
+    assertiveness_sd: float = 0.5
+    """Spread of the persistent personal assertiveness across drivers (utility units)."""
+    trial_noise_sd: float = 0.9
+    """Spread of the per-trial mood/initial read of the situation (utility units)."""
+    revision_noise_sd: float = 0.25
+    """Step-to-step wander of the perceived utility (Ornstein–Uhlenbeck, utility units)."""
+    yield_weight: float = 1.0
+    """How strongly the other's acceleration (claim) or braking (yield) moves the utility."""
+    hysteresis: float = 0.6
+    """Utility margin needed to change an existing intent."""
+
+    # personal style ranges
+    reaction_steps_range: tuple[int, int] = (2, 5)
+    throttle_range: tuple[float, float] = (1.5, 4.4)
+    brake_range: tuple[float, float] = (2.5, 6.0)
+    preferred_speed_range: tuple[float, float] = (27.5, 31.5)
+    front_margin_range: tuple[float, float] = (1.0, 7.0)
+    """Clearance beyond a car length a driver wants before cutting in, m."""
+    lane_change_duration_range: tuple[float, float] = (2.4, 4.2)
+    lane_change_earliest_x_range: tuple[float, float] = (-110.0, -50.0)
+    """Personal earliest ``x`` at which a driver starts a lane change once the gap allows, m."""
+    pedal_lag_range: tuple[float, float] = (0.04, 0.12)
+    """Time constant of the pedal (first-order lag), s."""
+    lane_offset_sd: float = 0.3
+    """Spread of where in the target lane a driver ends up, m."""
+    lateral_wander_sd: float = 0.5
+    """Stationary spread of lane-keeping lateral acceleration noise, m/s²."""
+    pedal_noise_sd: float = 0.06
+    """Spread of throttle-level jitter while a pedal is pressed, m/s²."""
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class DriverStyles:
+    """Persistent personal traits of ``k`` drivers, each an array ``[k]`` (units as in
+    :class:`DriverModel`)."""
+
+    assertiveness: np.ndarray
+    reaction_steps: np.ndarray
+    throttle: np.ndarray
+    brake: np.ndarray
+    preferred_speed: np.ndarray
+    front_margin: np.ndarray
+    lane_change_duration: np.ndarray
+    lane_change_earliest_x: np.ndarray
+    pedal_lag: np.ndarray
+
+    @staticmethod
+    def sample(model: DriverModel, k: int, rng: np.random.Generator) -> "DriverStyles":
+        """Draw ``k`` drivers from the population ``model``."""
+        uniform = lambda r: rng.uniform(r[0], r[1], k)  # noqa: E731
+        return DriverStyles(
+            assertiveness=rng.normal(0.0, model.assertiveness_sd, k),
+            reaction_steps=rng.integers(model.reaction_steps_range[0], model.reaction_steps_range[1] + 1, k),
+            throttle=uniform(model.throttle_range),
+            brake=uniform(model.brake_range),
+            preferred_speed=uniform(model.preferred_speed_range),
+            front_margin=uniform(model.front_margin_range),
+            lane_change_duration=uniform(model.lane_change_duration_range),
+            lane_change_earliest_x=uniform(model.lane_change_earliest_x_range),
+            pedal_lag=uniform(model.pedal_lag_range),
+        )
+
+    def take(self, index: np.ndarray) -> "DriverStyles":
+        """The styles of drivers ``index`` (``[m]`` integer array), e.g. one per trial."""
+        return DriverStyles(**{name: value[index] for name, value in vars(self).items()})
+
+
+class DriverAgents:
+    """A batch of ``m`` simulated drivers, each in its own trial against one other car.
+
+    ``start_states``: ``[m, 6]`` initial states (``STATE_NAMES``); ``start_lanes``: ``[m]``
+    ``"left"``/``"right"``. Call :meth:`act` once per step with both cars' current states; it
+    returns this driver's accelerations for the next step, ``[m, 2]`` (``xdd, ydd``).
+    """
+
+    HISTORY = 8  # steps of relative observations kept for the reaction delay
+
+    def __init__(self, model: DriverModel, styles: DriverStyles, start_states: np.ndarray,
+                 start_lanes: np.ndarray, rng: np.random.Generator):
+        m = len(start_states)
+        self.model, self.styles, self.rng = model, styles, rng
+        self.target_y = np.where(start_lanes == "left", LANE_CENTRE_Y["right"], LANE_CENTRE_Y["left"])
+        self.target_y = self.target_y + rng.normal(0.0, model.lane_offset_sd, m)
+        self.start_y = np.asarray(start_states[:, 1], dtype=float)
+        self.lane_bias = np.where(start_lanes == "right", model.lane_bias_right, 0.0)
+        self.trial_noise = rng.normal(0.0, model.trial_noise_sd, m)
+        self.wander = np.zeros(m)
+        self.front: np.ndarray | None = None  # intent: True = pass in front
+        self.committed = np.zeros(m, dtype=bool)  # lane change started; intent locked
+        self.lc_t = np.zeros(m)  # time since the lane change started, s
+        self.lc_y0 = self.start_y.copy()
+        self.pedal = -coasting_acceleration(start_states[:, 2])  # holding speed at the start
+        self.pedal_command = self.pedal.copy()
+        self.brake_left = np.zeros(m)  # remaining time of the current brake pulse, s
+        self.lat_noise = np.zeros(m)
+        self.ydd = np.zeros(m)
+        self.obs = np.zeros((self.HISTORY, m, 3))  # ring buffer of (gap, Δv, other's xdd)
+        self.steps = 0
+
+    def _perceive(self, own: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Store this step's relative observation and return the delayed one: gap (m, positive when
+        ahead), Δv (m/s, positive when faster) and the other's acceleration (m/s²), each ``[m]``."""
+        now = np.stack([own[:, 0] - other[:, 0], own[:, 2] - other[:, 2], other[:, 4]], axis=1)
+        if self.steps == 0:
+            self.obs[:] = now
+        self.obs = np.roll(self.obs, 1, axis=0)
+        self.obs[0] = now
+        delay = np.minimum(self.styles.reaction_steps, self.HISTORY - 1)
+        seen = self.obs[delay, np.arange(len(own))]
+        return seen[:, 0], seen[:, 1], seen[:, 2]
+
+    def _update_intent(self, gap, dv, other_acc) -> None:
+        m, model = len(gap), self.model
+        theta = np.sqrt(1 - np.exp(-2 * DT))  # OU step with unit time constant
+        self.wander = self.wander * np.exp(-DT) + model.revision_noise_sd * theta * self.rng.standard_normal(m)
+        signal = -np.tanh(other_acc / 2.0)  # other accelerating: it claims the gap; braking: it yields
+        utility = (model.w_gap * (gap + model.lookahead * dv) + self.lane_bias + self.styles.assertiveness
+                   + self.trial_noise + self.wander + model.yield_weight * signal)
+        if self.front is None:
+            self.front = utility > 0
+        else:
+            flip = np.where(self.front, utility < -model.hysteresis, utility > model.hysteresis)
+            self.front = np.where(self.committed, self.front, self.front ^ flip)
+
+    def act(self, own: np.ndarray, other: np.ndarray) -> np.ndarray:
+        """Accelerations ``[m, 2]`` (``xdd, ydd``, m/s²) for the next step, given both cars' current
+        states ``own``, ``other`` ``[m, 6]``."""
+        st, model, m = self.styles, self.model, len(own)
+        gap, dv, other_acc = self._perceive(own, other)
+        self._update_intent(gap, dv, other_acc)
+        self.steps += 1
+        x, v = own[:, 0], own[:, 2]
+        to_go = np.maximum(CUTOFF_X - x, 1.0)  # m until the cutoff
+        urgency = np.clip((90.0 - to_go) / 70.0, 0.0, 1.0)  # 0 far away, 1 within 20 m of it
+
+        # ---- has the gap opened for my intent? (relative position projected 1 s ahead)
+        margin = CAR_LENGTH + st.front_margin * (1.0 - 0.8 * urgency)
+        ahead = gap + 1.0 * dv
+        clear = np.where(self.front, ahead > margin, ahead < -margin)
+        start_change = ~self.committed & clear & ((x > st.lane_change_earliest_x) | (urgency > 0))
+        self.lc_y0 = np.where(start_change, own[:, 1], self.lc_y0)
+        self.lc_t = np.where(start_change, 0.0, self.lc_t)
+        self.committed |= start_change
+
+        # ---- longitudinal pedal command
+        cruise = np.clip(0.8 * (st.preferred_speed - v), 0.0, 2.5) - coasting_acceleration(v)
+        cruise = np.where(v > SPEED_ALERT - 1.0, 0.0, cruise)
+        conflict = (other_acc > 0.8) & (np.abs(gap) < 12.0)  # both claiming the same gap
+        push = np.where(conflict & (st.assertiveness > 0), FULL_THROTTLE, st.throttle)
+        push = np.where(v > SPEED_ALERT - 1.0, 0.0, push)
+        # behind: how much of the other car's lead is still missing, projected over 1.5 s
+        missing = gap + 1.5 * dv + margin
+        self.brake_left = np.maximum(self.brake_left - DT, 0.0)
+        new_pulse = ~self.front & ~clear & (missing > 0) & (self.brake_left <= 0) & (self.rng.random(m) < 0.35)
+        pulse_level = np.where(urgency > 0.5, np.maximum(st.brake, 0.7 * HARD_BRAKE), st.brake)
+        self.brake_level = np.where(new_pulse, -pulse_level * self.rng.uniform(0.6, 1.0, m),
+                                    getattr(self, "brake_level", np.zeros(m)))
+        self.brake_left = np.where(new_pulse, self.rng.uniform(0.3, 0.8, m), self.brake_left)
+        braking = self.brake_left > 0
+
+        command = np.where(self.front & ~clear, push, np.where(~self.front & ~clear, 0.0, cruise))
+        command = np.where(~self.front & clear, np.minimum(cruise, 0.0 if True else cruise), command)
+        command = np.where(braking, self.brake_level, command)
+        # after the order is settled (committed and clear) the front car cruises, the rear one
+        # does not close in on the leader
+        settled_rear = self.committed & ~self.front & (gap > -(CAR_LENGTH + 3.0))
+        command = np.where(settled_rear & ~braking, np.minimum(command, 0.0), command)
+        changed = np.abs(command - self.pedal_command) > 0.5
+        jitter = np.where(command != 0.0, model.pedal_noise_sd * self.rng.standard_normal(m), 0.0)
+        self.pedal_command = np.where(changed, command, self.pedal_command) + jitter
+        alpha = DT / (st.pedal_lag + DT)
+        self.pedal = self.pedal + alpha * (self.pedal_command - self.pedal)
+        xdd = np.clip(self.pedal + coasting_acceleration(v), -HARD_BRAKE, FULL_THROTTLE)
+
+        # ---- lateral: min-jerk lane change tracked with lag, or lane keeping with wander
+        self.lc_t = np.where(self.committed, self.lc_t + DT, 0.0)
+        s = np.clip(self.lc_t / st.lane_change_duration, 0.0, 1.0)
+        dy = self.target_y - self.lc_y0
+        y_ref = np.where(self.committed, self.lc_y0 + dy * (10 * s**3 - 15 * s**4 + 6 * s**5), self.start_y)
+        yd_ref = np.where(self.committed, dy * (30 * s**2 - 60 * s**3 + 30 * s**4) / st.lane_change_duration, 0.0)
+        ydd_ref = np.where(self.committed, dy * (60 * s - 180 * s**2 + 120 * s**3) / st.lane_change_duration**2, 0.0)
+        theta = np.sqrt(1 - np.exp(-2 * DT / 0.6))
+        self.lat_noise = self.lat_noise * np.exp(-DT / 0.6) + model.lateral_wander_sd * theta * self.rng.standard_normal(m)
+        ydd_command = ydd_ref + 1.2 * (y_ref - own[:, 1]) + 2.0 * (yd_ref - own[:, 3]) + self.lat_noise
+        self.ydd = self.ydd + (DT / (0.25 + DT)) * (ydd_command - self.ydd)
+        return np.stack([xdd, self.ydd], axis=1)

@@ -1,0 +1,70 @@
+"""Dataset statistics: who passed whom, the paper's Table I, and marginal driving behaviour.
+
+Table I (DESIGN.md §2) is the fraction of trials in which the car that started in the **left**
+lane passes in front, per initial condition ``(Δv = v_left - v_right, tco)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..scenario import SWAP_THRESHOLD_Y, TCO_VALUES
+from .trials import TrialSet
+
+TABLE1_PAPER = {
+    "-2": {"1": 0.072, "2": 0.131, "3": 0.236},
+    "0": {"all": 0.382},
+    "2": {"1": 0.857, "2": 0.762, "3": 0.667},
+}
+"""Table I of the paper: fraction of human–human trials where the left-lane car passes in front."""
+
+
+def swap_step(trials: TrialSet) -> np.ndarray:
+    """Per trial, the first step at which both cars are across ``SWAP_THRESHOLD_Y`` from where they
+    started (``[n]``); the last recorded step when that never happens."""
+    y = trials.states[..., 1]  # [n, 2, T]
+    across = (SWAP_THRESHOLD_Y - y[:, :, :1]) * (SWAP_THRESHOLD_Y - y) < 0
+    both = across.all(axis=1)  # [n, T]
+    both &= np.arange(y.shape[2])[None, :] < trials.lengths[:, None]
+    return np.where(both.any(axis=1), both.argmax(axis=1), trials.lengths - 1)
+
+
+def left_car_in_front(trials: TrialSet) -> np.ndarray:
+    """Per trial, whether the car that started in the left lane is ahead (larger ``x``) at the
+    moment both cars have swapped lanes (``[n]`` bool)."""
+    k = swap_step(trials)
+    x_at = trials.states[np.arange(len(trials)), :, k, 0]  # [n, 2]
+    left_agent = (trials.start_lanes[:, 1] == "left").astype(int)
+    right_agent = 1 - left_agent
+    idx = np.arange(len(trials))
+    return x_at[idx, left_agent] > x_at[idx, right_agent]
+
+
+def table1(trials: TrialSet) -> dict:
+    """Table I of ``trials``: ``{"-2": {"1": f, "2": f, "3": f}, "0": {"all": f}, "2": {...}}`` with the
+    fraction ``f`` of trials where the left-lane car passes in front (None where a cell is empty),
+    and the trial count of each cell under the same keys in ``counts``."""
+    front = left_car_in_front(trials)
+    dv = np.round(trials.ic_dv)
+    tco = np.round(trials.ic_tco)
+    fractions: dict = {}
+    counts: dict = {}
+    for dv_key in ("-2", "0", "2"):
+        in_dv = dv == float(dv_key)
+        cells = {"all": in_dv} if dv_key == "0" else {
+            str(int(c)): in_dv & (tco == c) for c in TCO_VALUES
+        }
+        fractions[dv_key] = {k: (float(front[m].mean()) if m.any() else None) for k, m in cells.items()}
+        counts[dv_key] = {k: int(m.sum()) for k, m in cells.items()}
+    return {"table1": fractions, "counts": counts}
+
+
+def table1_max_deviation(table: dict, reference: dict = TABLE1_PAPER) -> float:
+    """Largest absolute difference (fraction, not pp) between two Table I dicts over filled cells."""
+    diffs = [
+        abs(table[dv][k] - reference[dv][k])
+        for dv in reference
+        for k in reference[dv]
+        if table.get(dv, {}).get(k) is not None
+    ]
+    return max(diffs) if diffs else float("nan")
