@@ -53,39 +53,44 @@ class DriverModel:
     """
 
     # decision (calibrated against Table I)
-    w_gap: float = 0.30
+    w_gap: float = 0.20
     """Weight of the projected gap in the front/behind utility, 1/m."""
-    lookahead: float = 4.0
+    lookahead: float = 4.5
     """Horizon over which a driver projects the relative speed into a gap, s."""
-    lane_bias_right: float = 0.45
+    lane_bias_right: float = 0.48
     """Extra utility of going in front for the car starting in the right lane (it moves into the
     faster, left lane); Table I shows the right-lane car in front in 62 % of equal-speed trials."""
     assertiveness_sd: float = 0.5
     """Spread of the persistent personal assertiveness across drivers (utility units)."""
-    trial_noise_sd: float = 0.9
+    trial_noise_sd: float = 1.4
     """Spread of the per-trial mood/initial read of the situation (utility units)."""
     revision_noise_sd: float = 0.25
     """Step-to-step wander of the perceived utility (Ornstein–Uhlenbeck, utility units)."""
     yield_weight: float = 1.0
     """How strongly the other's acceleration (claim) or braking (yield) moves the utility."""
+    impatience_range: tuple[float, float] = (0.4, 1.6)
+    """Rate at which an unresolved stand-off (my intent not getting me clear) pushes a driver to
+    switch intent, utility units per s; personal, so the less patient driver gives way first."""
     hysteresis: float = 0.6
     """Utility margin needed to change an existing intent."""
 
     # personal style ranges
     reaction_steps_range: tuple[int, int] = (2, 5)
-    throttle_range: tuple[float, float] = (1.5, 4.4)
-    brake_range: tuple[float, float] = (2.5, 6.0)
+    throttle_range: tuple[float, float] = (2.0, 4.5)
+    brake_range: tuple[float, float] = (2.0, 6.0)
     preferred_speed_range: tuple[float, float] = (27.5, 31.5)
     front_margin_range: tuple[float, float] = (1.0, 7.0)
     """Clearance beyond a car length a driver wants before cutting in, m."""
-    lane_change_duration_range: tuple[float, float] = (2.4, 4.2)
-    lane_change_earliest_x_range: tuple[float, float] = (-110.0, -50.0)
+    lane_change_duration_range: tuple[float, float] = (3.0, 5.0)
+    lane_change_earliest_x_range: tuple[float, float] = (-85.0, -40.0)
     """Personal earliest ``x`` at which a driver starts a lane change once the gap allows, m."""
     pedal_lag_range: tuple[float, float] = (0.04, 0.12)
     """Time constant of the pedal (first-order lag), s."""
-    lane_offset_sd: float = 0.3
-    """Spread of where in the target lane a driver ends up, m."""
-    lateral_wander_sd: float = 0.5
+    cruise_throttle_range: tuple[float, float] = (0.8, 2.6)
+    """Gentle throttle a driver uses to regain its preferred speed, m/s²."""
+    lane_offset_sd: float = 0.25
+    """Spread of where in the target lane a driver ends up, m (kept off the road edges)."""
+    lateral_wander_sd: float = 0.35
     """Stationary spread of lane-keeping lateral acceleration noise, m/s²."""
     pedal_noise_sd: float = 0.06
     """Spread of throttle-level jitter while a pedal is pressed, m/s²."""
@@ -108,6 +113,8 @@ class DriverStyles:
     lane_change_duration: np.ndarray
     lane_change_earliest_x: np.ndarray
     pedal_lag: np.ndarray
+    cruise_throttle: np.ndarray
+    impatience: np.ndarray
 
     @staticmethod
     def sample(model: DriverModel, k: int, rng: np.random.Generator) -> "DriverStyles":
@@ -123,6 +130,8 @@ class DriverStyles:
             lane_change_duration=uniform(model.lane_change_duration_range),
             lane_change_earliest_x=uniform(model.lane_change_earliest_x_range),
             pedal_lag=uniform(model.pedal_lag_range),
+            cruise_throttle=uniform(model.cruise_throttle_range),
+            impatience=uniform(model.impatience_range),
         )
 
     def take(self, index: np.ndarray) -> "DriverStyles":
@@ -133,30 +142,40 @@ class DriverStyles:
 class DriverAgents:
     """A batch of ``m`` simulated drivers, each in its own trial against one other car.
 
-    ``start_states``: ``[m, 6]`` initial states (``STATE_NAMES``); ``start_lanes``: ``[m]``
-    ``"left"``/``"right"``. Call :meth:`act` once per step with both cars' current states; it
-    returns this driver's accelerations for the next step, ``[m, 2]`` (``xdd, ydd``).
+    ``styles``: one driver per car (:meth:`DriverStyles.take`); ``start_states``: ``[m, 6]``
+    initial states (``STATE_NAMES``); ``start_lanes``: ``[m]`` ``"left"``/``"right"``. Call
+    :meth:`act` once per step with both cars' current states; it returns this driver's
+    accelerations for the next step, ``[m, 2]`` (``xdd, ydd``).
     """
 
     HISTORY = 8  # steps of relative observations kept for the reaction delay
+    LATERAL_LAG = 0.15  # steering lag of the lateral acceleration, s
+    LATERAL_GAINS = (1.5, 2.4)  # lane tracking stiffness (1/s²) and damping (1/s)
+    WANDER_TIME = 0.6  # correlation time of lane-keeping wander, s
 
     def __init__(self, model: DriverModel, styles: DriverStyles, start_states: np.ndarray,
                  start_lanes: np.ndarray, rng: np.random.Generator):
         m = len(start_states)
         self.model, self.styles, self.rng = model, styles, rng
-        self.target_y = np.where(start_lanes == "left", LANE_CENTRE_Y["right"], LANE_CENTRE_Y["left"])
-        self.target_y = self.target_y + rng.normal(0.0, model.lane_offset_sd, m)
+        to_left = start_lanes == "right"
+        offset = np.clip(rng.normal(0.0, model.lane_offset_sd, m), -0.5, 0.5)
+        # drivers heading for the left lane stay clear of the left road edge (y = -1)
+        offset = np.where(to_left, np.minimum(offset, 0.25), offset)
+        self.target_y = np.where(to_left, LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]) + offset
         self.start_y = np.asarray(start_states[:, 1], dtype=float)
-        self.lane_bias = np.where(start_lanes == "right", model.lane_bias_right, 0.0)
+        self.lane_bias = np.where(to_left, model.lane_bias_right, 0.0)
         self.trial_noise = rng.normal(0.0, model.trial_noise_sd, m)
         self.wander = np.zeros(m)
-        self.front: np.ndarray | None = None  # intent: True = pass in front
+        self.pressure = np.zeros(m)  # accumulated impatience of an unresolved stand-off
+        self.front = np.zeros(m, dtype=bool)  # intent: True = pass in front
         self.committed = np.zeros(m, dtype=bool)  # lane change started; intent locked
         self.lc_t = np.zeros(m)  # time since the lane change started, s
+        self.lc_duration = styles.lane_change_duration.copy()  # of the lane change under way, s
         self.lc_y0 = self.start_y.copy()
-        self.pedal = -coasting_acceleration(start_states[:, 2])  # holding speed at the start
-        self.pedal_command = self.pedal.copy()
+        self.pedal = np.zeros(m)  # real drivers mostly coast: pedals released at the start
+        self.pedal_command = np.zeros(m)
         self.brake_left = np.zeros(m)  # remaining time of the current brake pulse, s
+        self.brake_level = np.zeros(m)
         self.lat_noise = np.zeros(m)
         self.ydd = np.zeros(m)
         self.obs = np.zeros((self.HISTORY, m, 3))  # ring buffer of (gap, Δv, other's xdd)
@@ -174,78 +193,88 @@ class DriverAgents:
         seen = self.obs[delay, np.arange(len(own))]
         return seen[:, 0], seen[:, 1], seen[:, 2]
 
-    def _update_intent(self, gap, dv, other_acc) -> None:
+    def _update_intent(self, gap, dv, other_acc, stand_off, urgency) -> None:
+        """Form (first step) or revise the front/behind intent; committed drivers keep theirs."""
         m, model = len(gap), self.model
-        theta = np.sqrt(1 - np.exp(-2 * DT))  # OU step with unit time constant
-        self.wander = self.wander * np.exp(-DT) + model.revision_noise_sd * theta * self.rng.standard_normal(m)
+        decay = np.exp(-DT)  # Ornstein–Uhlenbeck wander with a 1 s time constant
+        self.wander = self.wander * decay + model.revision_noise_sd * np.sqrt(1 - decay**2) * self.rng.standard_normal(m)
+        rate = self.styles.impatience * (1.0 + 2.0 * urgency)
+        self.pressure = np.where(stand_off, self.pressure + rate * DT, self.pressure * 0.8)
         signal = -np.tanh(other_acc / 2.0)  # other accelerating: it claims the gap; braking: it yields
         utility = (model.w_gap * (gap + model.lookahead * dv) + self.lane_bias + self.styles.assertiveness
                    + self.trial_noise + self.wander + model.yield_weight * signal)
-        if self.front is None:
+        if self.steps == 0:
             self.front = utility > 0
-        else:
-            flip = np.where(self.front, utility < -model.hysteresis, utility > model.hysteresis)
-            self.front = np.where(self.committed, self.front, self.front ^ flip)
+            return
+        utility = utility + np.where(self.front, -self.pressure, self.pressure)
+        flip = np.where(self.front, utility < -model.hysteresis, utility > model.hysteresis) & ~self.committed
+        self.front = self.front ^ flip
+        self.pressure = np.where(flip, 0.0, self.pressure)
 
     def act(self, own: np.ndarray, other: np.ndarray) -> np.ndarray:
         """Accelerations ``[m, 2]`` (``xdd, ydd``, m/s²) for the next step, given both cars' current
         states ``own``, ``other`` ``[m, 6]``."""
         st, model, m = self.styles, self.model, len(own)
         gap, dv, other_acc = self._perceive(own, other)
-        self._update_intent(gap, dv, other_acc)
-        self.steps += 1
         x, v = own[:, 0], own[:, 2]
-        to_go = np.maximum(CUTOFF_X - x, 1.0)  # m until the cutoff
-        urgency = np.clip((90.0 - to_go) / 70.0, 0.0, 1.0)  # 0 far away, 1 within 20 m of it
+        urgency = np.clip((x + 90.0) / 70.0, 0.0, 1.0)  # 0 before x = -90 m, 1 from x = -20 m
 
-        # ---- has the gap opened for my intent? (relative position projected 1 s ahead)
+        # ---- is the gap open for my intent? (relative position projected 1 s ahead)
         margin = CAR_LENGTH + st.front_margin * (1.0 - 0.8 * urgency)
         ahead = gap + 1.0 * dv
+        stand_off = ~self.committed & np.where(self.front, (ahead < margin) & (dv < 0.5),
+                                               (ahead > -margin) & (dv > -0.5))
+        self._update_intent(gap, dv, other_acc, stand_off, urgency)
+        self.steps += 1
         clear = np.where(self.front, ahead > margin, ahead < -margin)
         start_change = ~self.committed & clear & ((x > st.lane_change_earliest_x) | (urgency > 0))
         self.lc_y0 = np.where(start_change, own[:, 1], self.lc_y0)
+        # a late lane change is hurried so that the car is across the divider before the cutoff
+        hurried = np.minimum(st.lane_change_duration, np.maximum(1.6, 1.6 * (CUTOFF_X - x) / np.maximum(v, 1.0)))
+        self.lc_duration = np.where(start_change, hurried, self.lc_duration)
         self.lc_t = np.where(start_change, 0.0, self.lc_t)
         self.committed |= start_change
 
         # ---- longitudinal pedal command
-        cruise = np.clip(0.8 * (st.preferred_speed - v), 0.0, 2.5) - coasting_acceleration(v)
-        cruise = np.where(v > SPEED_ALERT - 1.0, 0.0, cruise)
-        conflict = (other_acc > 0.8) & (np.abs(gap) < 12.0)  # both claiming the same gap
-        push = np.where(conflict & (st.assertiveness > 0), FULL_THROTTLE, st.throttle)
-        push = np.where(v > SPEED_ALERT - 1.0, 0.0, push)
-        # behind: how much of the other car's lead is still missing, projected over 1.5 s
+        below_alert = v < SPEED_ALERT - 1.0
+        # cruising: coast, with gentle throttle while well below the preferred speed
+        cruise = np.where(below_alert & (v < st.preferred_speed - 1.0), st.cruise_throttle, 0.0)
+        claims = (other_acc > 0.8) & (np.abs(gap) < 12.0)  # the other is fighting for the same gap
+        push = np.where(claims & (st.assertiveness > 0), FULL_THROTTLE, st.throttle)
+        push = np.where(below_alert, push, 0.0)
+        # behind: a brake pulse while the other car's lead, projected over 1.5 s, is still missing
         missing = gap + 1.5 * dv + margin
         self.brake_left = np.maximum(self.brake_left - DT, 0.0)
-        new_pulse = ~self.front & ~clear & (missing > 0) & (self.brake_left <= 0) & (self.rng.random(m) < 0.35)
-        pulse_level = np.where(urgency > 0.5, np.maximum(st.brake, 0.7 * HARD_BRAKE), st.brake)
-        self.brake_level = np.where(new_pulse, -pulse_level * self.rng.uniform(0.6, 1.0, m),
-                                    getattr(self, "brake_level", np.zeros(m)))
+        new_pulse = (~self.front & ~clear & (missing > 0) & (self.brake_left <= 0)
+                     & (self.rng.random(m) < 0.35))
+        hard = np.where(urgency > 0.5, np.maximum(st.brake, 0.7 * HARD_BRAKE), st.brake)
+        self.brake_level = np.where(new_pulse, -hard * self.rng.uniform(0.6, 1.0, m), self.brake_level)
         self.brake_left = np.where(new_pulse, self.rng.uniform(0.3, 0.8, m), self.brake_left)
         braking = self.brake_left > 0
 
-        command = np.where(self.front & ~clear, push, np.where(~self.front & ~clear, 0.0, cruise))
-        command = np.where(~self.front & clear, np.minimum(cruise, 0.0 if True else cruise), command)
-        command = np.where(braking, self.brake_level, command)
-        # after the order is settled (committed and clear) the front car cruises, the rear one
-        # does not close in on the leader
-        settled_rear = self.committed & ~self.front & (gap > -(CAR_LENGTH + 3.0))
-        command = np.where(settled_rear & ~braking, np.minimum(command, 0.0), command)
+        settled_rear = ~self.front & (clear | self.committed) & (gap > -(CAR_LENGTH + 3.0))
+        command = np.select(
+            [braking, self.front & ~clear, ~self.front & ~clear, settled_rear],
+            [self.brake_level, push, 0.0, np.minimum(cruise, 0.0)],
+            default=cruise,
+        )
         changed = np.abs(command - self.pedal_command) > 0.5
         jitter = np.where(command != 0.0, model.pedal_noise_sd * self.rng.standard_normal(m), 0.0)
         self.pedal_command = np.where(changed, command, self.pedal_command) + jitter
-        alpha = DT / (st.pedal_lag + DT)
-        self.pedal = self.pedal + alpha * (self.pedal_command - self.pedal)
+        self.pedal = self.pedal + DT / (st.pedal_lag + DT) * (self.pedal_command - self.pedal)
         xdd = np.clip(self.pedal + coasting_acceleration(v), -HARD_BRAKE, FULL_THROTTLE)
 
-        # ---- lateral: min-jerk lane change tracked with lag, or lane keeping with wander
+        # ---- lateral: minimum-jerk lane change tracked with steering lag, or lane keeping
         self.lc_t = np.where(self.committed, self.lc_t + DT, 0.0)
-        s = np.clip(self.lc_t / st.lane_change_duration, 0.0, 1.0)
-        dy = self.target_y - self.lc_y0
-        y_ref = np.where(self.committed, self.lc_y0 + dy * (10 * s**3 - 15 * s**4 + 6 * s**5), self.start_y)
-        yd_ref = np.where(self.committed, dy * (30 * s**2 - 60 * s**3 + 30 * s**4) / st.lane_change_duration, 0.0)
-        ydd_ref = np.where(self.committed, dy * (60 * s - 180 * s**2 + 120 * s**3) / st.lane_change_duration**2, 0.0)
-        theta = np.sqrt(1 - np.exp(-2 * DT / 0.6))
-        self.lat_noise = self.lat_noise * np.exp(-DT / 0.6) + model.lateral_wander_sd * theta * self.rng.standard_normal(m)
-        ydd_command = ydd_ref + 1.2 * (y_ref - own[:, 1]) + 2.0 * (yd_ref - own[:, 3]) + self.lat_noise
-        self.ydd = self.ydd + (DT / (0.25 + DT)) * (ydd_command - self.ydd)
+        duration = self.lc_duration
+        s = np.clip(self.lc_t / duration, 0.0, 1.0)
+        dy = np.where(self.committed, self.target_y - self.lc_y0, 0.0)
+        y_ref = np.where(self.committed, self.lc_y0, self.start_y) + dy * (10 * s**3 - 15 * s**4 + 6 * s**5)
+        yd_ref = dy * (30 * s**2 - 60 * s**3 + 30 * s**4) / duration
+        ydd_ref = dy * (60 * s - 180 * s**2 + 120 * s**3) / duration**2
+        decay = np.exp(-DT / self.WANDER_TIME)
+        self.lat_noise = self.lat_noise * decay + model.lateral_wander_sd * np.sqrt(1 - decay**2) * self.rng.standard_normal(m)
+        k_p, k_d = self.LATERAL_GAINS
+        ydd_command = ydd_ref + k_p * (y_ref - own[:, 1]) + k_d * (yd_ref - own[:, 3]) + self.lat_noise
+        self.ydd = self.ydd + DT / (self.LATERAL_LAG + DT) * (ydd_command - self.ydd)
         return np.stack([xdd, self.ydd], axis=1)

@@ -1,0 +1,240 @@
+"""Command-line interface: ``trafficweaving <command> ...`` (also ``python -m trafficweaving``).
+
+Every reporting command takes ``--json`` and then prints exactly one JSON object on stdout.
+Bad input ends with a one-line message on stderr and exit status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from .errors import InputError
+
+DEFAULT_HITL_DIRS = ("../shared/reference/hitl", "shared/reference/hitl")
+
+
+def _emit(args, payload: dict, text: str) -> None:
+    print(json.dumps(payload) if args.json else text)
+
+
+def _table1_text(table: dict, counts: dict) -> str:
+    from .data.stats import TABLE1_PAPER
+
+    def cell(dv, k):
+        value = table[dv][k]
+        ours = "   -  " if value is None else f"{100 * value:5.1f}%"
+        return f"{ours} (paper {100 * TABLE1_PAPER[dv][k]:4.1f}%, n={counts[dv][k]})"
+
+    lines = ["Table I: fraction of trials where the car starting in the left lane passes in front",
+             f"{'tco':>5} | {'Δv = -2 m/s':^30} | {'Δv = +2 m/s':^30}"]
+    for k in ("1", "2", "3"):
+        lines.append(f"{k + ' s':>5} | {cell('-2', k):^30} | {cell('2', k):^30}")
+    lines.append(f"Δv = 0 (all tco): {cell('0', 'all')}")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------- commands
+def cmd_generate(args) -> None:
+    from .data.generate import generate_trials
+
+    if args.trials < 1:
+        raise InputError(f"--trials must be a positive integer, got {args.trials}")
+    start = time.perf_counter()
+    trials, report = generate_trials(args.trials, seed=args.seed, pairs=args.pairs, progress=not args.json)
+    trials.write_parquet(args.out)
+    seconds = time.perf_counter() - start
+    payload = {"trials": len(trials), "simulated": report.simulated, "rejected": report.rejected,
+               "seed": args.seed, "out": str(args.out), "seconds": round(seconds, 3)}
+    rejected = ", ".join(f"{k} {v}" for k, v in report.rejected.items())
+    _emit(args, payload, f"wrote {len(trials)} valid trials to {args.out} in {seconds:.1f} s "
+                         f"({report.simulated} simulated; rejected: {rejected})")
+
+
+def cmd_import(args) -> None:
+    if args.source == "hitl":
+        from .data.hitl import read_hitl
+
+        trials = read_hitl(args.inputs)
+        trials.write_parquet(args.out)
+        _emit(args, {"trials": len(trials), "out": str(args.out)},
+              f"imported {len(trials)} human-in-the-loop trials into {args.out}")
+    else:
+        from .data.rosbag import read_rosbags
+
+        if len(args.inputs) != 1:
+            raise InputError(f"import rosbag takes one folder of .bag files, got {len(args.inputs)} paths")
+        result = read_rosbags(args.inputs[0])
+        result.trials.write_parquet(args.out)
+        rejected_total = sum(result.rejected.values())
+        _emit(args, {"trials": len(result.trials), "rejected": rejected_total,
+                     "rejected_by_reason": result.rejected, "out": str(args.out)},
+              f"imported {len(result.trials)} trials into {args.out}; rejected {rejected_total} bags "
+              f"({', '.join(f'{k} {v}' for k, v in result.rejected.items()) or 'none'})")
+
+
+def cmd_stats(args) -> None:
+    from .data.behaviour import behaviour_samples, compare_behaviour, format_comparison
+    from .data.stats import table1
+    from .data.trials import load_trials
+
+    trials = load_trials(args.data)
+    t1 = table1(trials)
+    humans = behaviour_samples(trials, role="human")
+    payload = {
+        "trials": len(trials),
+        "steps": {"min": int(trials.lengths.min()), "mean": float(trials.lengths.mean()),
+                  "max": int(trials.lengths.max())},
+        "table1": t1["table1"],
+        "table1_counts": t1["counts"],
+        "behaviour": {name: _summary(values) for name, values in humans.items()},
+    }
+    text = [f"{args.data}: {len(trials)} trials, {trials.lengths.min()}–{trials.lengths.max()} steps "
+            f"(mean {trials.lengths.mean():.1f}) of {trials.dt} s", _table1_text(t1["table1"], t1["counts"])]
+    if args.reference:
+        reference = behaviour_samples(load_trials(args.reference), role="human")
+        comparison = compare_behaviour(humans, reference)
+        payload["behaviour_vs_reference"] = comparison
+        text += [f"Human behaviour vs {args.reference}:", format_comparison(comparison)]
+    _emit(args, payload, "\n".join(text))
+
+
+def _summary(values) -> dict:
+    import numpy as np
+
+    values = np.asarray(values, dtype=float)
+    if values.size == 0:
+        return {"count": 0}
+    p5, p50, p95 = np.percentile(values, [5, 50, 95])
+    return {"count": int(values.size), "mean": float(values.mean()), "std": float(values.std()),
+            "p5": float(p5), "p50": float(p50), "p95": float(p95)}
+
+
+def cmd_plot(args) -> None:
+    from .data.trials import load_trials
+
+    trials = load_trials(args.data)
+    reference = load_trials(args.reference) if args.reference else None
+    paths = write_figures(trials, Path(args.out), reference)
+    _emit(args, {"figures": [str(p) for p in paths]}, "\n".join(f"wrote {p}" for p in paths))
+
+
+def write_figures(trials, out: Path, reference=None) -> list[Path]:
+    """Write the dataset figures (trajectories, profiles, Table I, and behaviour vs ``reference``
+    when given) into folder ``out``; returns their paths."""
+    from .data.behaviour import behaviour_samples
+    from .data.stats import table1
+    from .viz.figures import plot_behaviour, plot_profiles, plot_table1, plot_trajectories
+
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [
+        plot_trajectories(trials, out / "trajectories.png"),
+        plot_profiles(trials, out / "profiles.png"),
+        plot_table1(table1(trials)["table1"], out / "table1.png"),
+    ]
+    if reference is not None:
+        paths.append(plot_behaviour(behaviour_samples(trials, "human"), behaviour_samples(reference, "human"),
+                                    out / "behaviour_vs_reference.png"))
+    return paths
+
+
+def find_hitl_dir(explicit: str | None) -> Path | None:
+    """The folder of the authors' human-in-the-loop ``.jld`` files: ``explicit`` if given, else the
+    first of ``DEFAULT_HITL_DIRS`` that exists (relative to the working directory)."""
+    if explicit:
+        path = Path(explicit)
+        if not path.is_dir():
+            raise InputError(f"{path}: not a folder (expected the folder of the authors' .jld files)")
+        return path
+    return next((Path(d) for d in DEFAULT_HITL_DIRS if Path(d).is_dir()), None)
+
+
+def cmd_demo(args) -> None:
+    """The main job: a human–human dataset on the shipped driver model, its Table I, statistics and
+    figures, compared with the authors' real human drivers when their recordings are at hand."""
+    from .data.behaviour import behaviour_samples, compare_behaviour, format_comparison
+    from .data.generate import generate_trials
+    from .data.stats import table1
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    trials, report = generate_trials(args.trials, seed=args.seed, progress=True)
+    trials.write_parquet(out / "human_human.parquet")
+    print(f"generated {len(trials)} valid human–human trials in {time.perf_counter() - start:.1f} s "
+          f"({report.simulated} simulated, rejected {report.rejected}) -> {out / 'human_human.parquet'}")
+    t1 = table1(trials)
+    print(_table1_text(t1["table1"], t1["counts"]))
+
+    reference = None
+    hitl_dir = find_hitl_dir(args.hitl)
+    if hitl_dir is not None:
+        from .data.hitl import read_hitl
+
+        reference = read_hitl(sorted(hitl_dir.glob("*.jld")))
+        reference.write_parquet(out / "hitl.parquet")
+        comparison = compare_behaviour(behaviour_samples(trials, "human"), behaviour_samples(reference, "human"))
+        print(f"\nSimulated human drivers vs the {len(reference)} real human-in-the-loop trials in {hitl_dir}:")
+        print(format_comparison(comparison))
+    else:
+        print("\n(authors' human-in-the-loop recordings not found; pass --hitl DIR to compare with real drivers)")
+    for path in write_figures(trials, out / "figures", reference):
+        print(f"wrote {path}")
+
+
+# ---------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="trafficweaving", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("generate", help="generate synthetic human–human trials")
+    p.add_argument("--trials", type=int, default=1105, help="number of valid trials (default 1105, as the paper)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--pairs", type=int, default=19, help="pairs of simulated drivers (default 19, as the study)")
+    p.add_argument("--out", required=True, help="output Parquet file")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_generate)
+
+    p = sub.add_parser("import", help="import the authors' recordings")
+    p.add_argument("source", choices=("hitl", "rosbag"), help="hitl: .jld files; rosbag: a folder of ROS1 bags")
+    p.add_argument("inputs", nargs="+", help=".jld files (hitl) or one folder (rosbag)")
+    p.add_argument("--out", required=True, help="output Parquet file")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_import)
+
+    p = sub.add_parser("stats", help="dataset summary: Table I and marginal driving behaviour")
+    p.add_argument("data", help="Parquet dataset")
+    p.add_argument("--reference", help="a second dataset (e.g. imported real trials) to compare the humans with")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_stats)
+
+    p = sub.add_parser("plot", help="dataset figures (PNG)")
+    p.add_argument("data", help="Parquet dataset")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--reference", help="a second dataset to compare behaviour with")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser("demo", help="the main job, end to end, on the shipped defaults")
+    p.add_argument("--out", default="out", help="output folder (default: out)")
+    p.add_argument("--trials", type=int, default=1105)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--hitl", help="folder of the authors' .jld recordings (default: ../shared/reference/hitl if present)")
+    p.set_defaults(func=cmd_demo, json=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except InputError as exc:
+        print(f"trafficweaving {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # unwritable output path, full disk, ...
+        print(f"trafficweaving {args.command}: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    return 0
