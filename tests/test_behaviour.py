@@ -96,6 +96,8 @@ def test_lane_change_steps_exactly():
     s = behaviour_samples(make_trials([[a, a]], [20], roles=[["human", "robot"]]))
     # last within 0.4 m of the left centre: step 5 (-2.0); first within 0.4 m of the right: step 10
     np.testing.assert_allclose(s["lane_change_duration"], [0.5])
+    # from step 5 to the crossing at step 7.46
+    np.testing.assert_allclose(s["lane_change_lead_time"], [0.246], atol=1e-9)
     # divider -3.96 crossed between step 7 (-3.5) and 8 (-4.5): 0.46 of the way
     np.testing.assert_allclose(s["lane_change_x"], [x[7] + 0.46], atol=1e-9)
 

@@ -23,6 +23,7 @@ STATISTICS = {
     "long_jerk": "m/s³",
     "lat_jerk": "m/s³",
     "lane_change_duration": "s",
+    "lane_change_lead_time": "s",
     "lane_change_x": "m",
 }
 """The statistics of :func:`behaviour_samples` and their units, in display order."""
@@ -41,6 +42,10 @@ def behaviour_samples(trials: TrialSet, role: str = "human") -> dict[str, np.nda
     - ``lane_change_duration`` (s): one per agent whose lane change is fully recorded, from the last
       step within ``LANE_BAND`` of its start lane's centre before it first crosses
       ``LANE_DIVIDER_Y`` to the first step within ``LANE_BAND`` of the other lane's centre after;
+    - ``lane_change_lead_time`` (s): one per agent that crosses the divider, from the last step within
+      ``LANE_BAND`` of its start lane's centre to the (interpolated) crossing — the first half of a
+      lane change, observed for every crossing agent, so unlike ``lane_change_duration`` it does not
+      favour quick lane changes when recordings stop soon after the cutoff;
     - ``lane_change_x`` (m): one per agent that crosses the divider, ``x`` where ``y`` first crosses
       it, interpolated linearly between the two steps either side.
     """
@@ -76,6 +81,8 @@ def behaviour_samples(trials: TrialSet, role: str = "human") -> dict[str, np.nda
     leave = t_max - 1 - at_start[:, ::-1].argmax(axis=1)
     arrive = at_target.argmax(axis=1)
     duration = (arrive - leave)[complete] * trials.dt
+    left_start = at_start.any(axis=1)
+    lead_time = ((k_c - 1 + frac) - leave)[left_start] * trials.dt
 
     return {
         "speed": xd[recorded],
@@ -84,6 +91,7 @@ def behaviour_samples(trials: TrialSet, role: str = "human") -> dict[str, np.nda
         "long_jerk": (np.diff(xdd, axis=1) / trials.dt)[pair_recorded],
         "lat_jerk": (np.diff(ydd, axis=1) / trials.dt)[pair_recorded],
         "lane_change_duration": duration.astype(float),
+        "lane_change_lead_time": lead_time.astype(float),
         "lane_change_x": lane_change_x,
     }
 

@@ -53,16 +53,16 @@ class DriverModel:
     """
 
     # decision (calibrated against Table I)
-    w_gap: float = 0.20
+    w_gap: float = 0.204
     """Weight of the projected gap in the front/behind utility, 1/m."""
-    lookahead: float = 4.5
+    lookahead: float = 3.96
     """Horizon over which a driver projects the relative speed into a gap, s."""
-    lane_bias_right: float = 0.48
+    lane_bias_right: float = 0.513
     """Extra utility of going in front for the car starting in the right lane (it moves into the
     faster, left lane); Table I shows the right-lane car in front in 62 % of equal-speed trials."""
     assertiveness_sd: float = 0.5
     """Spread of the persistent personal assertiveness across drivers (utility units)."""
-    trial_noise_sd: float = 1.4
+    trial_noise_sd: float = 1.51
     """Spread of the per-trial mood/initial read of the situation (utility units)."""
     revision_noise_sd: float = 0.25
     """Step-to-step wander of the perceived utility (Ornstein–Uhlenbeck, utility units)."""
@@ -82,7 +82,7 @@ class DriverModel:
     front_margin_range: tuple[float, float] = (1.0, 7.0)
     """Clearance beyond a car length a driver wants before cutting in, m."""
     lane_change_duration_range: tuple[float, float] = (3.0, 5.0)
-    lane_change_earliest_x_range: tuple[float, float] = (-85.0, -40.0)
+    lane_change_earliest_x_range: tuple[float, float] = (-95.0, -50.0)
     """Personal earliest ``x`` at which a driver starts a lane change once the gap allows, m."""
     pedal_lag_range: tuple[float, float] = (0.04, 0.12)
     """Time constant of the pedal (first-order lag), s."""
@@ -219,9 +219,9 @@ class DriverAgents:
         x, v = own[:, 0], own[:, 2]
         urgency = np.clip((x + 90.0) / 70.0, 0.0, 1.0)  # 0 before x = -90 m, 1 from x = -20 m
 
-        # ---- is the gap open for my intent? (relative position projected 1 s ahead)
+        # ---- is the gap open for my intent? (relative position projected 1.5 s ahead)
         margin = CAR_LENGTH + st.front_margin * (1.0 - 0.8 * urgency)
-        ahead = gap + 1.0 * dv
+        ahead = gap + 1.5 * dv
         stand_off = ~self.committed & np.where(self.front, (ahead < margin) & (dv < 0.5),
                                                (ahead > -margin) & (dv > -0.5))
         self._update_intent(gap, dv, other_acc, stand_off, urgency)
@@ -230,7 +230,7 @@ class DriverAgents:
         start_change = ~self.committed & clear & ((x > st.lane_change_earliest_x) | (urgency > 0))
         self.lc_y0 = np.where(start_change, own[:, 1], self.lc_y0)
         # a late lane change is hurried so that the car is across the divider before the cutoff
-        hurried = np.minimum(st.lane_change_duration, np.maximum(1.6, 1.6 * (CUTOFF_X - x) / np.maximum(v, 1.0)))
+        hurried = np.minimum(st.lane_change_duration, np.maximum(2.2, 1.8 * (CUTOFF_X - x) / np.maximum(v, 1.0)))
         self.lc_duration = np.where(start_change, hurried, self.lc_duration)
         self.lc_t = np.where(start_change, 0.0, self.lc_t)
         self.committed |= start_change
