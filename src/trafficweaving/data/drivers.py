@@ -35,6 +35,8 @@ FULL_THROTTLE = 4.5
 """Largest longitudinal acceleration the simulator's cars reach (m/s², seen in real recordings)."""
 HARD_BRAKE = 8.4
 """Largest deceleration seen in real recordings, m/s²."""
+MAX_LATERAL_ACCEL = 4.0
+"""Largest lateral acceleration a driver steers for (m/s²); real drivers stay within ±3."""
 DRAG_AT_28 = 0.34
 """Deceleration when coasting at 28 m/s (real recordings: -0.33 to -0.34 m/s²); grows with v²."""
 
@@ -245,8 +247,8 @@ class DriverAgents:
         # behind: a brake pulse while the other car's lead, projected over 1.5 s, is still missing
         missing = gap + 1.5 * dv + margin
         self.brake_left = np.maximum(self.brake_left - DT, 0.0)
-        new_pulse = (~self.front & ~clear & (missing > 0) & (self.brake_left <= 0)
-                     & (self.rng.random(m) < 0.35))
+        new_pulse = (~self.front & ~clear & (missing > 0) & (dv > -2.5) & (self.brake_left <= 0)
+                     & (self.rng.random(m) < 0.3))
         hard = np.where(urgency > 0.5, np.maximum(st.brake, 0.7 * HARD_BRAKE), st.brake)
         self.brake_level = np.where(new_pulse, -hard * self.rng.uniform(0.6, 1.0, m), self.brake_level)
         self.brake_left = np.where(new_pulse, self.rng.uniform(0.3, 0.8, m), self.brake_left)
@@ -276,5 +278,6 @@ class DriverAgents:
         self.lat_noise = self.lat_noise * decay + model.lateral_wander_sd * np.sqrt(1 - decay**2) * self.rng.standard_normal(m)
         k_p, k_d = self.LATERAL_GAINS
         ydd_command = ydd_ref + k_p * (y_ref - own[:, 1]) + k_d * (yd_ref - own[:, 3]) + self.lat_noise
+        ydd_command = np.clip(ydd_command, -MAX_LATERAL_ACCEL, MAX_LATERAL_ACCEL)
         self.ydd = self.ydd + DT / (self.LATERAL_LAG + DT) * (ydd_command - self.ydd)
         return np.stack([xdd, self.ydd], axis=1)

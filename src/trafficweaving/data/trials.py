@@ -231,7 +231,7 @@ def trials_from_table(table: pa.Table, name: str) -> TrialSet:
         r = int(np.argmax(bad))
         raise InputError(f"{name}: NaN or infinite state in trial {trial[r]}, agent {agent[r]}, step {step[r]} (expected finite numbers)")
     for values, allowed, what in ((role, ROLES, "role"), (lane, LANES, "start_lane")):
-        unknown = sorted(set(np.unique(values)) - set(allowed))
+        unknown = sorted(set(map(str, np.unique(values))) - set(allowed))
         if unknown:
             raise InputError(f"{name}: unknown {what} {unknown[0]!r} (expected one of {', '.join(allowed)})")
     if not set(np.unique(agent)) <= {0, 1}:
