@@ -28,6 +28,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from scipy.special import ndtri
 
 from ..scenario import CAR_LENGTH, CUTOFF_X, DT, LANE_CENTRE_Y, SPEED_ALERT
 
@@ -55,16 +56,16 @@ class DriverModel:
     """
 
     # decision (calibrated against Table I)
-    w_gap: float = 0.204
+    w_gap: float = 0.207
     """Weight of the projected gap in the front/behind utility, 1/m."""
-    lookahead: float = 3.96
+    lookahead: float = 3.67
     """Horizon over which a driver projects the relative speed into a gap, s."""
-    lane_bias_right: float = 0.513
+    lane_bias_right: float = 0.552
     """Extra utility of going in front for the car starting in the right lane (it moves into the
     faster, left lane); Table I shows the right-lane car in front in 62 % of equal-speed trials."""
     assertiveness_sd: float = 0.5
     """Spread of the persistent personal assertiveness across drivers (utility units)."""
-    trial_noise_sd: float = 1.51
+    trial_noise_sd: float = 1.362
     """Spread of the per-trial mood/initial read of the situation (utility units)."""
     revision_noise_sd: float = 0.25
     """Step-to-step wander of the perceived utility (Ornstein–Uhlenbeck, utility units)."""
@@ -120,11 +121,14 @@ class DriverStyles:
 
     @staticmethod
     def sample(model: DriverModel, k: int, rng: np.random.Generator) -> "DriverStyles":
-        """Draw ``k`` drivers from the population ``model``."""
-        uniform = lambda r: rng.uniform(r[0], r[1], k)  # noqa: E731
+        """Draw ``k`` drivers from the population ``model`` by Latin hypercube sampling: each trait's
+        ``k`` values fall one in each of ``k`` equal-probability strata, in random order, so a small
+        group (the study's 38 drivers) spans the population without sample-mean noise."""
+        uniform = lambda r: r[0] + (r[1] - r[0]) * stratified_uniform(k, rng)  # noqa: E731
+        low, high = model.reaction_steps_range
         return DriverStyles(
-            assertiveness=rng.normal(0.0, model.assertiveness_sd, k),
-            reaction_steps=rng.integers(model.reaction_steps_range[0], model.reaction_steps_range[1] + 1, k),
+            assertiveness=model.assertiveness_sd * ndtri(stratified_uniform(k, rng)),
+            reaction_steps=low + np.floor((high - low + 1) * stratified_uniform(k, rng)).astype(int),
             throttle=uniform(model.throttle_range),
             brake=uniform(model.brake_range),
             preferred_speed=uniform(model.preferred_speed_range),
@@ -141,13 +145,19 @@ class DriverStyles:
         return DriverStyles(**{name: value[index] for name, value in vars(self).items()})
 
 
+def stratified_uniform(k: int, rng: np.random.Generator) -> np.ndarray:
+    """``k`` draws on (0, 1), one in each stratum ``[i/k, (i+1)/k)``, in random order (``[k]``)."""
+    return (rng.permutation(k) + rng.random(k)) / k
+
+
 class DriverAgents:
     """A batch of ``m`` simulated drivers, each in its own trial against one other car.
 
     ``styles``: one driver per car (:meth:`DriverStyles.take`); ``start_states``: ``[m, 6]``
     initial states (``STATE_NAMES``); ``start_lanes``: ``[m]`` ``"left"``/``"right"``. Call
     :meth:`act` once per step with both cars' current states; it returns this driver's
-    accelerations for the next step, ``[m, 2]`` (``xdd, ydd``).
+    accelerations for the next step, ``[m, 2]`` (``xdd, ydd``). ``mood``: optional ``[m]`` standard
+    normal draws for each trial's mood (drawn here when not given).
     """
 
     HISTORY = 8  # steps of relative observations kept for the reaction delay
@@ -156,7 +166,7 @@ class DriverAgents:
     WANDER_TIME = 0.6  # correlation time of lane-keeping wander, s
 
     def __init__(self, model: DriverModel, styles: DriverStyles, start_states: np.ndarray,
-                 start_lanes: np.ndarray, rng: np.random.Generator):
+                 start_lanes: np.ndarray, rng: np.random.Generator, mood: np.ndarray | None = None):
         m = len(start_states)
         self.model, self.styles, self.rng = model, styles, rng
         to_left = start_lanes == "right"
@@ -166,7 +176,7 @@ class DriverAgents:
         self.target_y = np.where(to_left, LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]) + offset
         self.start_y = np.asarray(start_states[:, 1], dtype=float)
         self.lane_bias = np.where(to_left, model.lane_bias_right, 0.0)
-        self.trial_noise = rng.normal(0.0, model.trial_noise_sd, m)
+        self.trial_noise = model.trial_noise_sd * (rng.standard_normal(m) if mood is None else mood)
         self.wander = np.zeros(m)
         self.pressure = np.zeros(m)  # accumulated impatience of an unresolved stand-off
         self.front = np.zeros(m, dtype=bool)  # intent: True = pass in front

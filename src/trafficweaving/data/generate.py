@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import ndtri
 from tqdm import tqdm
 
 from ..dynamics import trapezoid_step
@@ -22,7 +23,7 @@ from ..scenario import (
     check_validity,
     study_initial_conditions,
 )
-from .drivers import DriverAgents, DriverModel, DriverStyles
+from .drivers import DriverAgents, DriverModel, DriverStyles, stratified_uniform
 from .trials import TrialSet
 
 MAX_STEPS = 110
@@ -52,6 +53,23 @@ def schedule(n: int, pairs: int, rng: np.random.Generator) -> tuple[np.ndarray, 
     return ic_index, pair
 
 
+def stratified_moods(ic_index: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Per-trial moods of both drivers, ``[m, 2]``, independent standard normals.
+
+    Who goes first depends mostly on the *difference* of the two moods, so that difference is
+    stratified within each initial condition: the ``c`` trials of one condition get one draw from
+    each of ``c`` equal-probability strata, in random order (the sum is drawn freely). Rotating
+    ``(difference, sum)`` back keeps the two moods independent N(0, 1); a condition's outcomes
+    just carry less sampling noise, as a balanced experiment would.
+    """
+    difference = np.empty(len(ic_index))
+    for ic in np.unique(ic_index):
+        members = np.flatnonzero(ic_index == ic)
+        difference[members] = ndtri(stratified_uniform(len(members), rng))
+    total = rng.standard_normal(len(ic_index))
+    return np.stack([total + difference, total - difference], axis=1) / np.sqrt(2.0)
+
+
 def simulate_trials(ic_index: np.ndarray, pair: np.ndarray, styles: DriverStyles, model: DriverModel,
                     rng: np.random.Generator, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Simulate human–human trials with both cars driven by :class:`DriverAgents`.
@@ -63,8 +81,10 @@ def simulate_trials(ic_index: np.ndarray, pair: np.ndarray, styles: DriverStyles
     ics = study_initial_conditions()
     start = np.stack([ics[i].start_states() for i in ic_index])  # [m, 2, 6]
     lanes = np.array([[ics[i].lane_a, ics[i].lane_b] for i in ic_index])
+    moods = stratified_moods(ic_index, rng)
     cars = [
-        DriverAgents(model, styles.take(2 * pair + k), start[:, k], lanes[:, k], rng) for k in (0, 1)
+        DriverAgents(model, styles.take(2 * pair + k), start[:, k], lanes[:, k], rng, mood=moods[:, k])
+        for k in (0, 1)
     ]
     m = len(ic_index)
     states = np.empty((m, 2, MAX_STEPS, 6))

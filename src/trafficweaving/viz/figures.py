@@ -208,7 +208,7 @@ def plot_behaviour(sim: dict, real: dict, path: str | os.PathLike,
                 lo, hi = lo - 0.5, hi + 0.5
             bins = np.linspace(lo, hi, int(np.clip(np.sqrt(pooled.size), 10, 60)) + 1)
             for sample, key, label in ((a, "sim", labels[0]), (b, "real", labels[1])):
-                if sample.size:
+                if ((sample >= lo) & (sample <= hi)).any():  # density of an empty range is undefined
                     ax.hist(sample, bins=bins, density=True, histtype="stepfilled",
                             alpha=0.35, color=COLOURS[key], edgecolor=COLOURS[key], lw=1.2,
                             label=f"{label} (n = {sample.size})")
