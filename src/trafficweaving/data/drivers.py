@@ -58,14 +58,14 @@ class DriverModel:
     # decision (calibrated against Table I)
     w_gap: float = 0.207
     """Weight of the projected gap in the front/behind utility, 1/m."""
-    lookahead: float = 3.67
+    lookahead: float = 3.674
     """Horizon over which a driver projects the relative speed into a gap, s."""
-    lane_bias_right: float = 0.552
+    lane_bias_right: float = 0.547
     """Extra utility of going in front for the car starting in the right lane (it moves into the
     faster, left lane); Table I shows the right-lane car in front in 62 % of equal-speed trials."""
     assertiveness_sd: float = 0.5
     """Spread of the persistent personal assertiveness across drivers (utility units)."""
-    trial_noise_sd: float = 1.362
+    trial_noise_sd: float = 1.433
     """Spread of the per-trial mood/initial read of the situation (utility units)."""
     revision_noise_sd: float = 0.25
     """Step-to-step wander of the perceived utility (Ornstein–Uhlenbeck, utility units)."""

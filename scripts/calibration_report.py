@@ -1,0 +1,105 @@
+"""Write ``docs/calibration.md`` and its figures: how well the simulated human–human data matches
+the paper's Table I and the authors' real human drivers.
+
+    python scripts/calibration_report.py [--hitl ../shared/reference/hitl] [--out docs]
+
+Measures, in one run: Table I of the shipped dataset (1105 trials, seed 0), the spread of Table I
+over seeds 0..9 and at large N (20,000 trials), rejected trials by reason, and the marginal
+behaviour of the simulated humans against the 30 real human-in-the-loop drivers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from trafficweaving.cli import write_figures
+from trafficweaving.data.behaviour import behaviour_samples, compare_behaviour, format_comparison
+from trafficweaving.data.generate import generate_trials
+from trafficweaving.data.hitl import read_hitl
+from trafficweaving.data.stats import TABLE1_PAPER, table1, table1_max_deviation
+
+CELLS = [("-2", "1"), ("-2", "2"), ("-2", "3"), ("0", "all"), ("2", "1"), ("2", "2"), ("2", "3")]
+
+
+def cell_name(dv: str, k: str) -> str:
+    return f"Δv={int(dv):+d}, " + ("all tco" if k == "all" else f"tco={k} s")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--hitl", default="../shared/reference/hitl")
+    parser.add_argument("--out", default="docs")
+    args = parser.parse_args()
+    out = Path(args.out)
+
+    start = time.perf_counter()
+    trials, report = generate_trials(1105, seed=0)
+    seconds = time.perf_counter() - start
+    shipped = table1(trials)
+    seeds = [table1(generate_trials(1105, seed=s)[0])["table1"] for s in range(10)]
+    large = table1(generate_trials(20000, seed=100)[0])["table1"]
+    reference = read_hitl(sorted(Path(args.hitl).glob("*.jld")))
+    comparison = compare_behaviour(behaviour_samples(trials), behaviour_samples(reference))
+    write_figures(trials, out / "figures", reference)
+
+    pp = lambda v: f"{100 * v:.1f}"  # noqa: E731
+    lines = [
+        "# Calibration of the simulated human drivers",
+        "",
+        "Made by `python scripts/calibration_report.py` (numbers below are from its last run).",
+        "",
+        "## Table I",
+        "",
+        "Fraction (%) of human–human trials in which the car that started in the left lane passes in front.",
+        f"Shipped dataset: `trafficweaving generate --trials 1105 --seed 0` ({seconds:.2f} s here); "
+        "seeds 0–9: the same command with other seeds; 20k: 20,000 trials (the model's own probabilities, "
+        "sampling noise ≈ ±0.7 pp).",
+        "",
+        "| cell | paper | seed 0 (n) | seed 0 − paper | seeds 0–9 min / median / max | 20k |",
+        "|---|---|---|---|---|---|",
+    ]
+    for dv, k in CELLS:
+        values = np.array([s[dv][k] for s in seeds])
+        lines.append(
+            f"| {cell_name(dv, k)} | {pp(TABLE1_PAPER[dv][k])} | {pp(shipped['table1'][dv][k])} "
+            f"({shipped['counts'][dv][k]}) | {100 * (shipped['table1'][dv][k] - TABLE1_PAPER[dv][k]):+.1f} | "
+            f"{pp(values.min())} / {pp(np.median(values))} / {pp(values.max())} | {pp(large[dv][k])} |"
+        )
+    max_devs = [100 * table1_max_deviation(s) for s in seeds]
+    lines += [
+        "",
+        f"Largest cell deviation from the paper: seed 0 **{100 * table1_max_deviation(shipped['table1']):.1f} pp**; "
+        f"seeds 0–9: {', '.join(f'{d:.1f}' for d in max_devs)} pp "
+        f"({sum(d <= 5 for d in max_devs)} of 10 within 5 pp); 20k trials: {100 * table1_max_deviation(large):.1f} pp.",
+        "",
+        f"Rejected while generating the shipped dataset (authors' validity rules): {report.simulated - 1105} of "
+        f"{report.simulated} simulated ({100 * (report.simulated - 1105) / report.simulated:.1f} %): "
+        + ", ".join(f"{k} {v}" for k, v in report.rejected.items()) + ".",
+        "",
+        "![Table I](figures/table1.png)",
+        "",
+        "## Marginal behaviour against the real human drivers",
+        "",
+        f"Simulated humans (both cars of the 1105 trials) against the human car of the {len(reference)} real "
+        "human-in-the-loop trials in `../shared/reference/hitl` (a person driving against the authors' planner). "
+        "W: 1-D Wasserstein distance; W / std real: the same in units of the real sample's spread.",
+        "",
+        format_comparison(comparison),
+        "",
+        "![behaviour](figures/behaviour_vs_reference.png)",
+        "",
+        "![trajectories](figures/trajectories.png)",
+        "",
+        "![profiles](figures/profiles.png)",
+        "",
+    ]
+    (out / "calibration.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
