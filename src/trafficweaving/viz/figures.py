@@ -204,7 +204,7 @@ def plot_behaviour(sim: dict, real: dict, path: str | os.PathLike,
             ax.text(0.5, 0.5, "no samples", ha="center", va="center", transform=ax.transAxes)
         else:
             lo, hi = np.percentile(pooled, [0.5, 99.5])
-            if hi <= lo:
+            if hi - lo < 1e-6:  # a (nearly) constant sample still gets a readable bin
                 lo, hi = lo - 0.5, hi + 0.5
             bins = np.linspace(lo, hi, int(np.clip(np.sqrt(pooled.size), 10, 60)) + 1)
             for sample, key, label in ((a, "sim", labels[0]), (b, "real", labels[1])):
