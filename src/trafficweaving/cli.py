@@ -77,7 +77,7 @@ def cmd_import(args) -> None:
 
 
 def cmd_stats(args) -> None:
-    from .data.behaviour import behaviour_samples, compare_behaviour, format_comparison
+    from .data.behaviour import behaviour_samples, compare_behaviour, format_comparison, summarise
     from .data.stats import table1
     from .data.trials import load_trials
 
@@ -90,7 +90,7 @@ def cmd_stats(args) -> None:
                   "max": int(trials.lengths.max())},
         "table1": t1["table1"],
         "table1_counts": t1["counts"],
-        "behaviour": {name: _summary(values) for name, values in humans.items()},
+        "behaviour": {name: summarise(values) for name, values in humans.items()},
     }
     text = [f"{args.data}: {len(trials)} trials, {trials.lengths.min()}–{trials.lengths.max()} steps "
             f"(mean {trials.lengths.mean():.1f}) of {trials.dt} s", _table1_text(t1["table1"], t1["counts"])]
@@ -100,17 +100,6 @@ def cmd_stats(args) -> None:
         payload["behaviour_vs_reference"] = comparison
         text += [f"Human behaviour vs {args.reference}:", format_comparison(comparison)]
     _emit(args, payload, "\n".join(text))
-
-
-def _summary(values) -> dict:
-    import numpy as np
-
-    values = np.asarray(values, dtype=float)
-    if values.size == 0:
-        return {"count": 0}
-    p5, p50, p95 = np.percentile(values, [5, 50, 95])
-    return {"count": int(values.size), "mean": float(values.mean()), "std": float(values.std()),
-            "p5": float(p5), "p50": float(p50), "p95": float(p95)}
 
 
 def cmd_plot(args) -> None:

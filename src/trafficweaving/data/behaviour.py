@@ -96,7 +96,7 @@ def behaviour_samples(trials: TrialSet, role: str = "human") -> dict[str, np.nda
     }
 
 
-def _summary(sample: np.ndarray) -> dict:
+def summarise(sample: np.ndarray) -> dict:
     """Count, mean, std (ddof 0) and 5/50/95th percentiles of a 1-D sample; None when empty."""
     if sample.size == 0:
         return {"count": 0, **{key: None for key in SUMMARY_KEYS[1:]}}
@@ -121,8 +121,8 @@ def compare_behaviour(sim: dict, real: dict) -> dict[str, dict]:
         sd = float(b.std()) if b.size else 0.0
         table[name] = {
             "unit": STATISTICS.get(name, ""),
-            "sim": _summary(a),
-            "real": _summary(b),
+            "sim": summarise(a),
+            "real": summarise(b),
             "wasserstein": w,
             "wasserstein_over_std": w / sd if w is not None and sd > 0 else None,
         }
