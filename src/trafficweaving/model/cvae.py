@@ -1,0 +1,237 @@
+"""The paper's CVAE human action model (DESIGN.md §3), one configurable implementation of the
+four variants of the paper's Fig. 3.
+
+Shapes: ``B`` exemplars, ``L`` history steps, ``N = 15`` future steps, ``S`` latent samples per
+exemplar, ``Z = K_z^N_z`` joint latent values. Every tensor here is *standardised* (the model holds
+its standardisation as buffers; :mod:`trafficweaving.model.predictor` converts physical units).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .gmm import GMM, GMMHead
+from .lstm import LSTMCell, SequenceSummary, StateProjection
+
+STATE_DIM = 6
+ACTION_DIM = 2
+HORIZON = 15
+MIN_HISTORY = 5  # prediction needs steps 0..t with t >= 4
+
+VARIANTS = {  # name: (latent_vars N_z, latent_classes K_z, components M), the paper's Fig. 3
+    "cvae": (2, 5, 16),
+    "no-latent": (1, 1, 16),
+    "mixture-lstm": (2, 5, 1),
+    "lstm": (1, 1, 1),
+}
+
+
+@dataclass(frozen=True)
+class CVAEConfig:
+    """Architecture. Defaults are the paper's CVAE; :meth:`variant` builds the Fig. 3 ablations.
+    ``has_q`` is False for a model without the recognition network q(z|x,y) (the authors'
+    published weights only hold what prediction needs)."""
+
+    latent_vars: int = 2
+    latent_classes: int = 5
+    components: int = 16
+    history_units: int = 32
+    future_units: int = 32
+    decoder_units: int = 128
+    p_z_hidden: int = 16
+    has_q: bool = True
+
+    @staticmethod
+    def variant(name: str, **overrides) -> "CVAEConfig":
+        if name not in VARIANTS:
+            raise ValueError(f"unknown variant {name!r} (expected one of {', '.join(VARIANTS)})")
+        n_z, k_z, m = VARIANTS[name]
+        return CVAEConfig(latent_vars=n_z, latent_classes=k_z, components=m, **overrides)
+
+    @property
+    def name(self) -> str:
+        """The Fig. 3 variant name of this configuration (or ``custom``)."""
+        key = (self.latent_vars, self.latent_classes, self.components)
+        return next((n for n, v in VARIANTS.items() if v == key), "custom")
+
+    @property
+    def latent_size(self) -> int:
+        return self.latent_vars * self.latent_classes
+
+    @property
+    def latent_values(self) -> int:
+        return self.latent_classes ** self.latent_vars
+
+    @property
+    def x_size(self) -> int:
+        return self.history_units + 4 * self.future_units
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class Batch:
+    """Standardised model inputs for ``B`` exemplars.
+
+    ``history [B, L, 12]``: robot then human state for steps 0..L-1 (padded past each ``t``);
+    ``t [B]``: the present step (index into ``history``); ``robot_present [B, 6]``;
+    ``robot_future [B, N, 6]`` (steps t+1..t+N); ``human_present [B, 6]``;
+    ``human_present_action [B, 2]`` (label-standardised); ``y [B, N, 2]`` the human's future
+    actions (None when sampling).
+    """
+
+    history: torch.Tensor
+    t: torch.Tensor
+    robot_present: torch.Tensor
+    robot_future: torch.Tensor
+    human_present: torch.Tensor
+    human_present_action: torch.Tensor
+    y: torch.Tensor | None = None
+
+    def to(self, device) -> "Batch":
+        return Batch(**{k: (None if v is None else v.to(device)) for k, v in vars(self).items()})
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+
+class CVAE(nn.Module):
+    """Encoders, latent distributions p(z|x) and q(z|x,y), and the GMM-output LSTM decoder."""
+
+    def __init__(self, config: CVAEConfig = CVAEConfig()):
+        super().__init__()
+        self.config = c = config
+        self.history_encoder = LSTMCell(2 * STATE_DIM, c.history_units)
+        self.robot_future_encoder = SequenceSummary(STATE_DIM, STATE_DIM, c.future_units)
+        self.p_z_hidden = nn.Linear(c.x_size, c.p_z_hidden)
+        self.p_z_out = nn.Linear(c.p_z_hidden, c.latent_size)
+        if c.has_q:
+            self.human_future_encoder = SequenceSummary(ACTION_DIM, STATE_DIM, c.future_units)
+            self.q_z = nn.Linear(c.x_size + 4 * c.future_units, c.latent_size)
+        zx_size = c.latent_size + c.x_size
+        self.decoder_initial_state = StateProjection(zx_size, c.decoder_units)
+        self.decoder = LSTMCell(zx_size + STATE_DIM + ACTION_DIM, c.decoder_units)
+        self.gmm = GMMHead(c.decoder_units, c.components)
+
+        classes = torch.tensor(list(itertools.product(range(c.latent_classes), repeat=c.latent_vars)))
+        self.register_buffer("latent_classes", classes, persistent=False)  # [Z, N_z], first variable slowest
+        self.register_buffer("latent_onehots", F.one_hot(classes, c.latent_classes).flatten(1).float(),
+                             persistent=False)  # [Z, N_z·K_z]
+        for name, size in (("feature_mean", STATE_DIM), ("feature_std", STATE_DIM),
+                           ("label_mean", ACTION_DIM), ("label_std", ACTION_DIM)):
+            self.register_buffer(name, torch.zeros(size) if "mean" in name else torch.ones(size))
+
+    # -- encoders ---------------------------------------------------------------------------
+    def encode(self, batch: Batch, dropout: float = 0.0) -> torch.Tensor:
+        """``x = concat(history h at t, robot-future summary)``, ``[B, x_size]``."""
+        steps = int(batch.t.max()) + 1
+        outputs, _ = self.history_encoder.run(batch.history[:, :steps], dropout=dropout)
+        index = batch.t.view(-1, 1, 1).expand(-1, 1, outputs.shape[-1])
+        history_h = torch.gather(outputs, 1, index).squeeze(1)
+        future = self.robot_future_encoder(batch.robot_future, batch.robot_present, dropout)
+        return torch.cat([history_h, future], dim=-1)
+
+    def p_z_logits(self, x: torch.Tensor, hidden_dropout: float = 0.0) -> torch.Tensor:
+        """Prior logits ``[B, N_z, K_z]``, mean-subtracted per variable."""
+        hidden = F.dropout(F.relu(self.p_z_hidden(x)), hidden_dropout, training=hidden_dropout > 0)
+        return self._latent_logits(self.p_z_out(hidden))
+
+    def q_z_logits(self, x: torch.Tensor, batch: Batch, dropout: float = 0.0) -> torch.Tensor:
+        """Recognition logits ``[B, N_z, K_z]`` from ``x`` and the human's future actions."""
+        if not self.config.has_q:
+            raise ValueError("this model has no recognition network q(z|x,y)")
+        summary = self.human_future_encoder(batch.y, batch.human_present, dropout)
+        return self._latent_logits(self.q_z(torch.cat([x, summary], dim=-1)))
+
+    def _latent_logits(self, flat: torch.Tensor) -> torch.Tensor:
+        logits = flat.view(*flat.shape[:-1], self.config.latent_vars, self.config.latent_classes)
+        return logits - logits.mean(dim=-1, keepdim=True)
+
+    def joint_log_prob(self, logits: torch.Tensor) -> torch.Tensor:
+        """Log probability of each of the ``Z`` joint latent values, ``[B, Z]``, from ``[B, N_z, K_z]``."""
+        log_p = F.log_softmax(logits, dim=-1)  # [B, N_z, K_z]
+        per_var = log_p[:, torch.arange(self.config.latent_vars, device=logits.device), self.latent_classes]  # [B, Z, N_z]
+        return per_var.sum(-1)
+
+    # -- decoder ----------------------------------------------------------------------------
+    def _decoder_parts(self, zx: torch.Tensor, robot_inputs: torch.Tensor, action_inputs: torch.Tensor | None):
+        """Split the decoder's input projection: the ``zx`` part (constant over the horizon)
+        ``[S, B, 4u]``, the robot-state part ``[B, N, 4u]`` and the action weights."""
+        w = self.decoder.weight_input
+        n_zx = zx.shape[-1]
+        w_zx, w_robot, w_action = w[:n_zx], w[n_zx:n_zx + STATE_DIM], w[n_zx + STATE_DIM:]
+        constant = torch.matmul(zx, w_zx) + self.decoder.bias
+        per_step = torch.matmul(robot_inputs, w_robot)
+        if action_inputs is not None:
+            per_step = per_step + torch.matmul(action_inputs, w_action)
+        return constant, per_step, w_action
+
+    @staticmethod
+    def decoder_robot_inputs(batch: Batch) -> torch.Tensor:
+        """Robot state fed at decoder step j: present for j = 0, then ``robot_future[j-1]``; ``[B, N, 6]``."""
+        return torch.cat([batch.robot_present.unsqueeze(1), batch.robot_future[:, :-1]], dim=1)
+
+    def decode(self, zx: torch.Tensor, batch: Batch, dropout: float = 0.0, feed_own: float = 0.0,
+               generator: torch.Generator | None = None) -> tuple[torch.Tensor, GMM]:
+        """Teacher-forced decoding of ``batch.y`` for latent-and-context inputs ``zx [S, B, zx_size]``.
+
+        Returns ``log p(y|x,z)`` ``[S, B]`` (sum over the horizon of per-step log densities capped
+        at 50) and the per-step mixtures (batch dims ``[S, B, N]``). In training, ``feed_own`` is the
+        probability that a step is fed the decoder's own sample of the previous action instead of
+        the recorded one (scheduled sampling).
+        """
+        s, b = zx.shape[:2]
+        action_inputs = torch.cat([batch.human_present_action.unsqueeze(1), batch.y[:, :-1]], dim=1)
+        constant, per_step, w_action = self._decoder_parts(zx, self.decoder_robot_inputs(batch), action_inputs)
+        c, h = self.decoder_initial_state(zx)
+        state = (c.reshape(s * b, -1), h.reshape(s * b, -1))
+        outputs = []
+        for k in range(HORIZON):
+            gates = (constant + per_step[:, k]).reshape(s * b, -1)
+            if feed_own > 0.0 and k > 0:
+                own = self.gmm(outputs[-1]).sample(generator).detach()  # [S·B, 2]
+                true = action_inputs[:, k].repeat(s, 1)
+                swap = torch.rand(s * b, 1, device=zx.device, generator=generator) < feed_own
+                gates = gates + torch.matmul((own - true) * swap, w_action)
+            state = self.decoder.step(gates, state, dropout)
+            outputs.append(state[1])
+        gmm = self.gmm(torch.stack(outputs, dim=1).view(s, b, HORIZON, -1))
+        return gmm.log_prob(batch.y.unsqueeze(0)).sum(-1), gmm
+
+    def sample_actions(self, zx: torch.Tensor, robot_inputs: torch.Tensor, present_action: torch.Tensor,
+                       generator: torch.Generator | None = None) -> torch.Tensor:
+        """Autoregressive samples of the human's future actions ``[S, B, N, 2]`` for
+        ``zx [S, B, zx_size]``, ``robot_inputs [B, N, 6]`` (see :meth:`decoder_robot_inputs`) and
+        ``present_action [B, 2]``; each sampled action is fed back as the next input."""
+        s, b = zx.shape[:2]
+        constant, per_step, w_action = self._decoder_parts(zx, robot_inputs, None)
+        c, h = self.decoder_initial_state(zx)
+        state = (c.reshape(s * b, -1), h.reshape(s * b, -1))
+        action = present_action.repeat(s, 1)
+        samples = []
+        for k in range(HORIZON):
+            gates = (constant + per_step[:, k]).reshape(s * b, -1) + torch.matmul(action, w_action)
+            state = self.decoder.step(gates, state)
+            action = self.gmm(state[1]).sample(generator)
+            samples.append(action)
+        return torch.stack(samples, dim=1).view(s, b, HORIZON, ACTION_DIM)
+
+    def zx(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``concat(z, x)`` for latents ``z [S, B, N_z·K_z]`` (or ``[S, 1, ·]``) and ``x [B, x_size]``."""
+        z = z.expand(-1, x.shape[0], -1)
+        return torch.cat([z, x.unsqueeze(0).expand(z.shape[0], -1, -1)], dim=-1)
+
+    # -- likelihoods ------------------------------------------------------------------------
+    def log_likelihoods(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor]:
+        """``log p(z|x)`` and ``log p(y|x,z)`` for every joint latent value, each ``[B, Z]``
+        (standardised units)."""
+        x = self.encode(batch)
+        log_p_z = self.joint_log_prob(self.p_z_logits(x))
+        log_p_y, _ = self.decode(self.zx(self.latent_onehots.unsqueeze(1), x), batch)
+        return log_p_z, log_p_y.T
