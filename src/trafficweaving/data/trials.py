@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,6 +39,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from ..atomic import atomic_write
 from ..errors import InputError
 from ..scenario import DT, MIN_TRIAL_STEPS, STATE_NAMES
 
@@ -167,17 +167,8 @@ class TrialSet:
 
     def write_parquet(self, path: str | os.PathLike) -> None:
         """Write the set to ``path`` atomically (temporary file in the same folder, then rename)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        table = self.to_table()
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        os.close(fd)
-        try:
-            pq.write_table(table, tmp, compression="zstd")
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_write(path) as f:
+            pq.write_table(self.to_table(), f, compression="zstd")
 
 
 def load_trials(path: str | os.PathLike) -> TrialSet:

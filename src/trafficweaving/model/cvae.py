@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .gmm import GMM, GMMHead
-from .lstm import LSTMCell, SequenceSummary, StateProjection
+from .lstm import LSTMCell, SequenceSummary, StateProjection, dropout_masks
 
 STATE_DIM = 6
 ACTION_DIM = 2
@@ -130,12 +130,18 @@ class CVAE(nn.Module):
     # -- encoders ---------------------------------------------------------------------------
     def encode(self, batch: Batch, dropout: float = 0.0) -> torch.Tensor:
         """``x = concat(history h at t, robot-future summary)``, ``[B, x_size]``."""
-        steps = int(batch.t.max()) + 1
-        outputs, _ = self.history_encoder.run(batch.history[:, :steps], dropout=dropout)
-        index = batch.t.view(-1, 1, 1).expand(-1, 1, outputs.shape[-1])
-        history_h = torch.gather(outputs, 1, index).squeeze(1)
-        future = self.robot_future_encoder(batch.robot_future, batch.robot_present, dropout)
-        return torch.cat([history_h, future], dim=-1)
+        history_h = self.encode_history(batch.history, batch.t, dropout)
+        return torch.cat([history_h, self.encode_robot_future(batch.robot_future, batch.robot_present, dropout)], dim=-1)
+
+    def encode_history(self, history: torch.Tensor, t: torch.Tensor, dropout: float = 0.0) -> torch.Tensor:
+        """History LSTM output at step ``t [B]`` of ``history [B, L, 12]``, ``[B, history_units]``."""
+        outputs, _ = self.history_encoder.run(history[:, : int(t.max()) + 1], dropout=dropout)
+        index = t.view(-1, 1, 1).expand(-1, 1, outputs.shape[-1])
+        return torch.gather(outputs, 1, index).squeeze(1)
+
+    def encode_robot_future(self, robot_future: torch.Tensor, robot_present: torch.Tensor, dropout: float = 0.0) -> torch.Tensor:
+        """Summary ``[B, 4·future_units]`` of ``robot_future [B, N, 6]`` from ``robot_present [B, 6]``."""
+        return self.robot_future_encoder(robot_future, robot_present, dropout)
 
     def p_z_logits(self, x: torch.Tensor, hidden_dropout: float = 0.0) -> torch.Tensor:
         """Prior logits ``[B, N_z, K_z]``, mean-subtracted per variable."""
@@ -191,15 +197,19 @@ class CVAE(nn.Module):
         constant, per_step, w_action = self._decoder_parts(zx, self.decoder_robot_inputs(batch), action_inputs)
         c, h = self.decoder_initial_state(zx)
         state = (c.reshape(s * b, -1), h.reshape(s * b, -1))
+        keep = dropout_masks(HORIZON, s * b, self.config.decoder_units, dropout, zx)
+        if feed_own > 0.0:  # which (step, row) pairs are fed the decoder's own previous sample
+            swap = torch.rand(HORIZON, s * b, device=zx.device, generator=generator) < feed_own
         outputs = []
         for k in range(HORIZON):
             gates = (constant + per_step[:, k]).reshape(s * b, -1)
             if feed_own > 0.0 and k > 0:
-                own = self.gmm(outputs[-1]).sample(generator).detach()  # [S·B, 2]
-                true = action_inputs[:, k].repeat(s, 1)
-                swap = torch.rand(s * b, 1, device=zx.device, generator=generator) < feed_own
-                gates = gates + torch.matmul((own - true) * swap, w_action)
-            state = self.decoder.step(gates, state, dropout)
+                rows = swap[k].nonzero().squeeze(1)
+                if len(rows):
+                    own = self.gmm(outputs[-1][rows].detach()).sample(generator)
+                    true = action_inputs[:, k].repeat(s, 1)[rows]
+                    gates = gates.index_add(0, rows, torch.matmul(own - true, w_action))
+            state = self.decoder.step(gates, state, None if keep is None else keep[k])
             outputs.append(state[1])
         gmm = self.gmm(torch.stack(outputs, dim=1).view(s, b, HORIZON, -1))
         return gmm.log_prob(batch.y.unsqueeze(0)).sum(-1), gmm

@@ -10,7 +10,6 @@ one matrix multiply and only the recurrent part runs step by step.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 FORGET_BIAS = 1.0
@@ -34,15 +33,16 @@ class LSTMCell(nn.Module):
         return torch.matmul(inputs, self.weight_input) + self.bias
 
     def step(self, gates_in: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor],
-             dropout: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+             keep: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """One step from projected inputs ``gates_in [B, 4u]`` and ``state = (c, h)`` (each ``[B, u]``);
-        returns the new ``(c, h)``. ``dropout`` is the recurrent drop probability (0 in evaluation)."""
+        returns the new ``(c, h)``. ``keep [B, u]`` is the recurrent-dropout mask, already scaled
+        by 1/keep-probability (None in evaluation; see :func:`dropout_masks`)."""
         c, h = state
         gates = torch.addmm(gates_in, h, self.weight_hidden)
         i, j, f, o = gates.chunk(4, dim=-1)
         g = torch.tanh(j)
-        if dropout > 0.0:
-            g = F.dropout(g, dropout, training=True)
+        if keep is not None:
+            g = g * keep
         c = c * torch.sigmoid(f + FORGET_BIAS) + torch.sigmoid(i) * g
         return c, torch.tanh(c) * torch.sigmoid(o)
 
@@ -55,11 +55,21 @@ class LSTMCell(nn.Module):
             zeros = inputs.new_zeros(batch, self.units)
             state = (zeros, zeros)
         gates_in = self.project(inputs)
+        keep = dropout_masks(steps, batch, self.units, dropout, inputs)
         outputs = []
         for k in range(steps):
-            state = self.step(gates_in[:, k], state, dropout)
+            state = self.step(gates_in[:, k], state, None if keep is None else keep[k])
             outputs.append(state[1])
         return torch.stack(outputs, dim=1), state
+
+
+def dropout_masks(steps: int, batch: int, units: int, dropout: float, like: torch.Tensor) -> torch.Tensor | None:
+    """Recurrent-dropout masks for a whole sequence in one draw, ``[steps, batch, units]``, each
+    element 0 with probability ``dropout`` and ``1/(1-dropout)`` otherwise; None when ``dropout`` is 0."""
+    if dropout <= 0.0:
+        return None
+    keep = 1.0 - dropout
+    return torch.bernoulli(torch.full((steps, batch, units), keep, dtype=like.dtype, device=like.device)) / keep
 
 
 class StateProjection(nn.Module):

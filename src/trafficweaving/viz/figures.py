@@ -7,7 +7,6 @@ folder, then rename) and returns the path written.
 from __future__ import annotations
 
 import os
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Rectangle
 
+from ..atomic import atomic_write
 from ..data.behaviour import compare_behaviour
 from ..data.stats import TABLE1_PAPER, left_car_in_front
 from ..data.trials import TrialSet
@@ -33,18 +33,9 @@ COLOURS = {"left": "tab:blue", "right": "tab:orange", "front": "tab:green", "beh
 
 def _save(fig: Figure, path: str | os.PathLike, dpi: int = 120) -> Path:
     """Write ``fig`` to ``path`` as PNG via a temporary file in the same folder, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex}.tmp")
-    try:
-        # os.open with mode 0o666 honours the umask (tempfile.mkstemp would leave the PNG 0600)
-        with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), "wb") as f:
-            fig.savefig(f, format="png", dpi=dpi)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_write(path) as f:
+        fig.savefig(f, format="png", dpi=dpi)
+    return Path(path)
 
 
 def _draw_road(ax, x_range: tuple[float, float], y_min: float) -> None:

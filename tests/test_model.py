@@ -1,0 +1,287 @@
+"""The CVAE: shapes of every variant, agreement with the authors' TensorFlow model, the mixture
+density and its sampler, the sampling API, and exemplar construction."""
+
+import glob
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from trafficweaving.data.generate import generate_trials
+from trafficweaving.data.hitl import read_hitl
+from trafficweaving.model.cvae import CVAE, VARIANTS, CVAEConfig
+from trafficweaving.model.evaluate import evaluate, model_standardisation
+from trafficweaving.model.exemplars import Standardisation, build_exemplars, split_by_trial
+from trafficweaving.model.gmm import GMM
+from trafficweaving.model.predictor import HumanPredictor
+
+SHARED = Path(os.environ.get("TRAFFICWEAVING_SHARED", Path(__file__).resolve().parents[2] / "shared")) / "reference"
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+AUTHORS = SHARED / "authors_model"
+HITL = sorted(glob.glob(str(SHARED / "hitl/*.jld")))
+needs_reference = pytest.mark.skipif(not (HITL and (AUTHORS / "weights.npz").is_file()),
+                                     reason="the authors' model and recordings (../shared/reference) are not present")
+
+
+@pytest.fixture(scope="module")
+def small_trials():
+    trials, _ = generate_trials(24, seed=3, progress=False)
+    return trials
+
+
+@pytest.fixture(scope="module")
+def authors():
+    from trafficweaving.model.authors import load_authors_model
+
+    model = load_authors_model(AUTHORS / "weights.npz").double()
+    exemplars = build_exemplars(read_hitl(HITL))
+    data = exemplars.standardised(model_standardisation(model), dtype=torch.float64)
+    reference = dict(np.load(AUTHORS / "reference_outputs.npz"))
+    return model, exemplars, data, reference
+
+
+# ---------------------------------------------------------------- exemplars
+def test_exemplars_cover_every_valid_time_of_every_human(small_trials):
+    ex = build_exemplars(small_trials)
+    assert len(ex.streams) == 2 * len(small_trials)  # both cars of a human–human trial are the human once
+    expected = sum(2 * (n - 15 - 4) for n in small_trials.lengths)
+    assert len(ex) == expected
+    assert ex.t.min() == 4 and np.all(ex.t <= ex.lengths[ex.stream] - 16)
+    # stream k of trial i, human agent a: the other car is stored first
+    k = 1
+    i, a = ex.stream_trial[k], ex.stream_agent[k]
+    np.testing.assert_array_equal(ex.streams[k, : small_trials.lengths[i], 1], small_trials.trajectory(i, a))
+    np.testing.assert_array_equal(ex.streams[k, : small_trials.lengths[i], 0], small_trials.trajectory(i, 1 - a))
+
+
+def test_batches_slice_history_future_and_labels(small_trials):
+    ex = build_exemplars(small_trials)
+    std = Standardisation.fit(small_trials)
+    data = ex.standardised(std, dtype=torch.float64)
+    e = 37
+    batch = data.batch(torch.tensor([e]))
+    s, t = ex.stream[e], ex.t[e]
+    physical = lambda v: v.numpy() * std.feature_std + std.feature_mean  # noqa: E731
+    np.testing.assert_allclose(physical(batch.robot_future[0]), ex.streams[s, t + 1:t + 16, 0], atol=1e-9)
+    np.testing.assert_allclose(physical(batch.human_present[0]), ex.streams[s, t, 1], atol=1e-9)
+    np.testing.assert_allclose(batch.y[0].numpy() * std.label_std + std.label_mean, ex.streams[s, t + 1:t + 16, 1, 4:6], atol=1e-9)
+    assert batch.history.shape == (1, t + 1, 12)
+
+
+def test_split_is_by_trial_and_80_20():
+    train, val = split_by_trial(100, 0.2, seed=1)
+    assert len(val) == 20 and len(train) == 80 and not set(train) & set(val)
+
+
+def test_standardisation_is_mean_and_std_of_all_states(small_trials):
+    std = Standardisation.fit(small_trials)
+    rows = np.concatenate([small_trials.states[i, :, : n].reshape(-1, 6) for i, n in enumerate(small_trials.lengths)])
+    np.testing.assert_allclose(std.feature_mean, rows.mean(0))
+    np.testing.assert_allclose(std.label_std, rows[:, 4:6].std(0))
+
+
+# ---------------------------------------------------------------- model shapes
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_every_variant_gives_normalised_latents_and_finite_likelihoods(variant, small_trials):
+    torch.manual_seed(0)
+    model = CVAE(CVAEConfig.variant(variant)).eval()
+    data = build_exemplars(small_trials).standardised(Standardisation.fit(small_trials))
+    batch = data.batch(torch.arange(8))
+    log_p_z, log_p_y = model.log_likelihoods(batch)
+    z = model.config.latent_values
+    assert log_p_z.shape == (8, z) and log_p_y.shape == (8, z)
+    torch.testing.assert_close(log_p_z.exp().sum(1), torch.ones(8))
+    assert torch.isfinite(log_p_y).all()
+    q = model.joint_log_prob(model.q_z_logits(model.encode(batch), batch))
+    torch.testing.assert_close(q.exp().sum(1), torch.ones(8))
+
+
+def test_variant_names_round_trip():
+    for name, (n_z, k_z, m) in VARIANTS.items():
+        c = CVAEConfig.variant(name)
+        assert (c.latent_vars, c.latent_classes, c.components, c.name) == (n_z, k_z, m, name)
+    assert CVAEConfig().latent_values == 25 and CVAEConfig().x_size == 160
+    with pytest.raises(ValueError, match="unknown variant"):
+        CVAEConfig.variant("transformer")
+
+
+def test_latent_enumeration_has_first_variable_slowest():
+    model = CVAE()
+    assert model.latent_classes[:6].tolist() == [[0, 0], [0, 1], [0, 2], [0, 3], [0, 4], [1, 0]]
+    assert model.latent_onehots[7].tolist() == [0, 1, 0, 0, 0, 0, 0, 1, 0, 0]
+
+
+# ---------------------------------------------------------------- mixture density
+def _toy_gmm():
+    return GMM(log_pi=torch.log(torch.tensor([[0.3, 0.7]], dtype=torch.float64)),
+               mu=torch.tensor([[[1.0, -2.0], [-0.5, 0.5]]], dtype=torch.float64),
+               log_sigma=torch.log(torch.tensor([[[0.5, 1.5], [1.0, 0.3]]], dtype=torch.float64)),
+               corr=torch.tensor([[0.6, -0.4]], dtype=torch.float64))
+
+
+def test_gmm_density_matches_scipy():
+    from scipy.stats import multivariate_normal
+
+    gmm = _toy_gmm()
+    y = torch.tensor([[0.2, -1.0]], dtype=torch.float64)
+    expected = 0.0
+    for k in range(2):
+        s, r = gmm.log_sigma[0, k].exp().numpy(), gmm.corr[0, k].item()
+        cov = [[s[0] ** 2, r * s[0] * s[1]], [r * s[0] * s[1], s[1] ** 2]]
+        expected += gmm.log_pi[0, k].exp().item() * multivariate_normal(gmm.mu[0, k].numpy(), cov).pdf(y[0].numpy())
+    assert gmm.log_prob(y).item() == pytest.approx(math.log(expected), rel=1e-10)
+
+
+def test_gmm_log_density_is_capped_at_50():
+    sharp = GMM(torch.zeros(1, 1), torch.zeros(1, 1, 2), torch.full((1, 1, 2), -40.0), torch.zeros(1, 1))
+    assert sharp.log_prob(torch.zeros(1, 2)).item() == 50.0  # uncapped: 80 - log 2π
+    clipped = GMM(torch.zeros(1, 1), torch.zeros(1, 1, 2), torch.full((1, 1, 2), -10.0), torch.zeros(1, 1))
+    assert clipped.log_prob(torch.zeros(1, 2)).item() == pytest.approx(20 - math.log(2 * math.pi))
+
+
+def test_gmm_samples_have_the_mixture_mean_and_covariance():
+    gmm = _toy_gmm()
+    many = GMM(*(v.expand(200_000, *v.shape[1:]) for v in (gmm.log_pi, gmm.mu, gmm.log_sigma, gmm.corr)))
+    draws = many.sample(torch.Generator().manual_seed(0)).numpy()
+    pi, mu = gmm.log_pi[0].exp().numpy(), gmm.mu[0].numpy()
+    s, r = gmm.log_sigma[0].exp().numpy(), gmm.corr[0].numpy()
+    mean = (pi[:, None] * mu).sum(0)
+    second = sum(pi[k] * (np.array([[s[k, 0] ** 2, r[k] * s[k, 0] * s[k, 1]], [r[k] * s[k, 0] * s[k, 1], s[k, 1] ** 2]])
+                          + np.outer(mu[k], mu[k])) for k in range(2))
+    np.testing.assert_allclose(draws.mean(0), mean, atol=0.01)
+    np.testing.assert_allclose(np.cov(draws.T), second - np.outer(mean, mean), atol=0.02)
+
+
+# ---------------------------------------------------------------- the authors' model
+@needs_reference
+def test_reference_instances_are_ours(authors):
+    _, exemplars, _, reference = authors
+    assert len(exemplars) == 963
+    names = np.array([Path(s).stem for s in exemplars.sources])[exemplars.stream]
+    np.testing.assert_array_equal(names, reference["trial"])
+    np.testing.assert_array_equal(exemplars.t, reference["t"])
+
+
+@needs_reference
+@pytest.mark.parametrize("device", DEVICES)
+def test_authors_latent_prior_and_likelihoods_match_tensorflow(authors, device):
+    model, exemplars, _, reference = authors
+    model = model.to(device)
+    data = exemplars.standardised(model_standardisation(model), device, torch.float64)
+    with torch.no_grad():
+        log_p_z, log_p_y = model.log_likelihoods(data.batch(torch.arange(len(data), device=device)))
+    model.cpu()
+    np.testing.assert_allclose(log_p_z.cpu().numpy(), reference["log_p_z"], atol=1e-4, rtol=0)
+    np.testing.assert_allclose(log_p_y.cpu().numpy(), reference["log_p_y_given_z_std"], atol=1e-4, rtol=0)
+
+
+@needs_reference
+def test_authors_gmm_parameters_match_tensorflow(authors):
+    model, _, data, reference = authors
+    batch = data.batch(torch.arange(8))
+    with torch.no_grad():
+        x = model.encode(batch)
+        _, gmm = model.decode(model.zx(model.latent_onehots.unsqueeze(1), x), batch)  # dims [25, 8, 15]
+    ours = {"gmm_log_pis": gmm.log_pi, "gmm_mus": gmm.mu, "gmm_log_sigmas": gmm.log_sigma, "gmm_corrs": gmm.corr}
+    for name, value in ours.items():
+        np.testing.assert_allclose(value.transpose(0, 1).numpy(), reference[name], atol=1e-4, rtol=0, err_msg=name)
+
+
+@needs_reference
+def test_authors_exact_nll_is_the_papers(authors):
+    model, exemplars, _, reference = authors
+    result = evaluate(model, exemplars)
+    np.testing.assert_allclose(result.nll_exact, reference["nll"], atol=1e-4)
+    assert result.summary()["nll_exact"] == pytest.approx(-12.717, abs=0.01)
+    assert result.nll_is is None  # the published weights have no recognition network
+    # the naive estimator with 50 prior samples is a noisy, upward-biased estimate of the exact NLL
+    assert result.summary()["nll_naive"] >= result.summary()["nll_exact"] - 0.05
+
+
+@needs_reference
+def test_authors_model_in_float32_agrees_too():
+    from trafficweaving.model.authors import load_authors_model
+
+    model = load_authors_model(AUTHORS / "weights.npz")
+    reference = np.load(AUTHORS / "reference_outputs.npz")
+    result = evaluate(model, build_exemplars(read_hitl(HITL)))
+    np.testing.assert_allclose(result.nll_exact, reference["nll"], atol=2e-3)
+
+
+def test_authors_import_rejects_bad_files(tmp_path):
+    from trafficweaving.errors import InputError
+    from trafficweaving.model.authors import load_authors_model
+
+    with pytest.raises(InputError, match="no such file"):
+        load_authors_model(tmp_path / "missing.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="junk.npz: not a readable .npz"):
+        load_authors_model(tmp_path / "junk.npz")
+    if not (AUTHORS / "weights.npz").is_file():
+        return
+    weights = dict(np.load(AUTHORS / "weights.npz"))
+    missing = {k: v for k, v in weights.items() if "corr_projection/bias" not in k}
+    np.savez(tmp_path / "missing_tensor.npz", **missing)
+    with pytest.raises(InputError, match="missing tensor decoder/p_y_xz/rnn/corr_projection/bias"):
+        load_authors_model(tmp_path / "missing_tensor.npz")
+    wrong = dict(weights, **{"encoder/p_z_x/dense0/kernel": np.zeros((150, 16), np.float32)})
+    np.savez(tmp_path / "wrong_shape.npz", **wrong)
+    with pytest.raises(InputError, match=r"dense0/kernel has shape \[150, 16\] \(expected \[160, 16\]\)"):
+        load_authors_model(tmp_path / "wrong_shape.npz")
+    lstm = dict(weights, **{"car_history_rnn/rnn/multi_rnn_cell/cell_0/layer_norm_basic_lstm_cell/kernel": np.zeros((40, 128), np.float32)})
+    np.savez(tmp_path / "wrong_lstm.npz", **lstm)
+    with pytest.raises(InputError, match=r"has shape \[40, 128\] \(expected \[44, 128\]\)"):
+        load_authors_model(tmp_path / "wrong_lstm.npz")
+
+
+# ---------------------------------------------------------------- sampling API
+def _situation(trials, t=12, candidates=5):
+    s = trials.states[0]
+    history = s[:, : t + 1].transpose(1, 0, 2)
+    futures = np.repeat(s[0, t + 1:t + 16][None], candidates, 0)
+    futures[:, :, 0] += np.linspace(-3, 3, candidates)[:, None]
+    return history, futures
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_sampling_shapes_and_determinism(small_trials, device):
+    torch.manual_seed(0)
+    predictor = HumanPredictor(CVAE().to(device))
+    history, futures = _situation(small_trials)
+    a = predictor.sample(history, futures, n=7, seed=11)
+    b = predictor.sample(history, futures, n=7, seed=11)
+    c = predictor.sample(history, futures, n=7, seed=12)
+    assert a.actions.shape == (7, 5, 15, 2) and a.latents.shape == (7, 5) and a.log_p_z.shape == (5, 25)
+    assert torch.equal(a.actions, b.actions) and torch.equal(a.latents, b.latents)
+    assert not torch.equal(a.actions, c.actions)
+    assert a.latents.min() >= 0 and a.latents.max() < 25 and torch.isfinite(a.actions).all()
+
+
+@needs_reference
+def test_sampled_latents_follow_the_prior():
+    from trafficweaving.model.authors import load_authors_model
+
+    trials = read_hitl(HITL[:1])
+    predictor = HumanPredictor(load_authors_model(AUTHORS / "weights.npz"))
+    history, futures = _situation(trials, t=10, candidates=2)
+    draw = predictor.sample(history, futures, n=20_000, seed=0)
+    frequencies = torch.stack([torch.bincount(draw.latents[:, j], minlength=25) for j in range(2)]).double() / 20_000
+    torch.testing.assert_close(frequencies, draw.log_p_z.exp().double(), atol=0.012, rtol=0)
+
+
+def test_sampling_rejects_bad_inputs(small_trials):
+    predictor = HumanPredictor(CVAE())
+    history, futures = _situation(small_trials)
+    with pytest.raises(ValueError, match=r"history has 3 steps \(expected at least 5\)"):
+        predictor.sample(history[:3], futures, 2)
+    with pytest.raises(ValueError, match=r"robot_futures has shape \[5, 14, 6\]"):
+        predictor.sample(history, futures[:, :14], 2)
+    bad = futures.copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="robot_futures has NaN"):
+        predictor.sample(history, bad, 2)
+    with pytest.raises(ValueError, match="n must be a positive integer"):
+        predictor.sample(history, futures, 0)
