@@ -79,3 +79,62 @@ def test_python_dash_m_entry_point(tmp_path):
     result = subprocess.run([sys.executable, "-m", "trafficweaving", "generate", "--trials", "20",
                              "--out", str(tmp_path / "d.parquet"), "--json"], capture_output=True, text=True)
     assert result.returncode == 0 and json.loads(result.stdout)["trials"] == 20
+
+
+# ---------------------------------------------------------------- human model commands
+AUTHORS_WEIGHTS = HITL_DIR.parent / "authors_model/weights.npz"
+
+
+@pytest.mark.skipif(not AUTHORS_WEIGHTS.is_file(), reason="the authors' weights (../shared/reference) are not present")
+def test_evaluate_authors_model_on_the_real_trials_gives_the_papers_nll(capsys, tmp_path):
+    data = tmp_path / "hitl.parquet"
+    run(capsys, "import", "hitl", *sorted(HITL_DIR.glob("*.jld")), "--out", data, "--json")
+    code, out, _ = run(capsys, "evaluate", "--model", f"authors:{AUTHORS_WEIGHTS}", "--data", data, "--json")
+    assert code == 0
+    report = json.loads(out)
+    assert report["instances"] == 963
+    assert report["nll_exact"] == pytest.approx(-12.717, abs=0.01)
+    assert report["nll_is"] is None and report["nll_naive"] > report["nll_exact"] - 0.05
+    code, out, _ = run(capsys, "predict", "--model", f"authors:{AUTHORS_WEIGHTS}", "--data", data,
+                       "--at", "2:10", "--at", "7:20:1", "--samples", 10, "--out", tmp_path / "fig3.png", "--json")
+    assert code == 0 and json.loads(out)["panels"] == 2 and (tmp_path / "fig3.png").stat().st_size > 10_000
+
+
+def test_train_then_evaluate_a_checkpoint(capsys, tmp_path):
+    data, model = tmp_path / "d.parquet", tmp_path / "m.pt"
+    run(capsys, "generate", "--trials", 12, "--seed", 2, "--out", data, "--json")
+    code, out, _ = run(capsys, "train", "--data", data, "--out", model, "--steps", 4, "--variant", "lstm", "--json")
+    assert code == 0
+    trained = json.loads(out)
+    assert trained["variant"] == "lstm" and trained["steps"] == 4 and model.is_file()
+    code, out, _ = run(capsys, "evaluate", "--model", model, "--data", data, "--json")
+    report = json.loads(out)
+    assert code == 0 and report["instances"] > trained["instances"]  # all trials, not just the validation split
+    # a single latent value: all three estimators are the same number
+    assert report["nll_exact"] == pytest.approx(report["nll_is"]) == pytest.approx(report["nll_naive"])
+    code, out, _ = run(capsys, "train", "--data", data, "--out", model, "--steps", 6, "--resume", model, "--json")
+    assert code == 0 and json.loads(out)["steps"] == 6
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["evaluate", "--model", "nope.pt", "--data", "DATA"], "nope.pt: no such file"),
+    (["evaluate", "--model", "authors:nope.npz", "--data", "DATA"], "nope.npz: no such file"),
+    (["evaluate", "--model", "MODEL", "--data", "nope.parquet"], "nope.parquet"),
+    (["evaluate", "--model", "MODEL", "--data", "DATA", "--device", "tpu9"], "unknown device"),
+    (["train", "--data", "DATA", "--out", "x.pt", "--steps", "0"], "--steps must be a positive integer"),
+    (["train", "--data", "DATA", "--out", "x.pt", "--resume", "DATA"], "not a readable checkpoint"),
+    (["predict", "--model", "MODEL", "--data", "DATA", "--at", "0", "--out", "f.png"], "expected TRIAL:T"),
+    (["predict", "--model", "MODEL", "--data", "DATA", "--at", "0:2", "--out", "f.png"], "t must be within 4.."),
+    (["predict", "--model", "MODEL", "--data", "DATA", "--at", "99:5", "--out", "f.png"], "trial index 99 is outside"),
+])
+def test_model_commands_reject_bad_input_in_one_line(capsys, tmp_path, argv, message):
+    from trafficweaving.model.checkpoint import save_checkpoint
+    from trafficweaving.model.cvae import CVAE
+
+    data, model = tmp_path / "d.parquet", tmp_path / "m.pt"
+    run(capsys, "generate", "--trials", 4, "--seed", 1, "--out", data, "--json")
+    save_checkpoint(model, CVAE())
+    argv = [str(data) if a == "DATA" else str(model) if a == "MODEL" else a for a in argv]
+    argv = [a.replace("nope", str(tmp_path / "nope")) for a in argv]
+    code, out, err = run(capsys, *argv)
+    assert code == 2 and message in err and err.count("\n") == 1 and "Traceback" not in err

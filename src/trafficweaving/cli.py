@@ -174,6 +174,42 @@ def cmd_evaluate(args) -> None:
                          f"importance-sampled {_fmt(result['nll_is'])}, naive {result['nll_naive']:.3f}")
 
 
+def _parse_pick(text: str, trials) -> tuple[int, int, int]:
+    """``TRIAL:T`` or ``TRIAL:T:AGENT`` (trial index, present step, human agent) for ``predict --at``."""
+    try:
+        parts = [int(v) for v in text.split(":")]
+        if len(parts) not in (2, 3):
+            raise ValueError
+    except ValueError:
+        raise InputError(f"--at {text!r}: expected TRIAL:T or TRIAL:T:AGENT (integers)") from None
+    i, t = parts[:2]
+    if not 0 <= i < len(trials):
+        raise InputError(f"--at {text!r}: trial index {i} is outside 0..{len(trials) - 1}")
+    humans = [a for a in (0, 1) if trials.roles[i, a] == "human"]
+    agent = parts[2] if len(parts) == 3 else (humans[0] if humans else 1)
+    if agent not in (0, 1):
+        raise InputError(f"--at {text!r}: agent must be 0 or 1")
+    last = int(trials.lengths[i]) - 16
+    if not 4 <= t <= last:
+        raise InputError(f"--at {text!r}: t must be within 4..{last} for trial {i} ({trials.lengths[i]} steps)")
+    return i, agent, t
+
+
+def cmd_predict(args) -> None:
+    from .data.trials import load_trials
+    from .model.checkpoint import choose_device, load_model
+    from .viz.predictions import plot_predictions
+
+    if args.samples < 1:
+        raise InputError(f"--samples must be a positive integer, got {args.samples}")
+    trials = load_trials(args.data)
+    picks = [_parse_pick(text, trials) for text in args.at]
+    model = load_model(args.model, choose_device(args.device))
+    path = plot_predictions(model, trials, picks, args.out, samples=args.samples, seed=args.seed,
+                            title=f"{args.model} ({model.config.name}) on {Path(args.data).name}")
+    _emit(args, {"out": str(path), "panels": len(picks)}, f"wrote {path}")
+
+
 def find_hitl_dir(explicit: str | None) -> Path | None:
     """The folder of the authors' human-in-the-loop ``.jld`` files: ``explicit`` if given, else the
     first of ``DEFAULT_HITL_DIRS`` that exists (relative to the working directory)."""
@@ -270,6 +306,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("predict", help="figure of sampled human futures (the paper's Fig. 3)")
+    p.add_argument("--model", default="default", help="checkpoint path, default, or authors:PATH")
+    p.add_argument("--data", required=True, help="Parquet dataset")
+    p.add_argument("--at", action="append", required=True, metavar="TRIAL:T[:AGENT]",
+                   help="trial index and present step (repeat for more panels); agent defaults to the first human")
+    p.add_argument("--samples", type=int, default=50)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--out", required=True, help="output PNG")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_predict)
 
     p = sub.add_parser("demo", help="the main job, end to end, on the shipped defaults")
     p.add_argument("--out", default="out", help="output folder (default: out)")

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..dynamics import integrate_trapezoid
 from .cvae import CVAE, HORIZON, MIN_HISTORY, STATE_DIM
 
 
@@ -93,3 +94,16 @@ class HumanPredictor:
         present_action = ((self._tensor(history[-1, 1, 4:6]) - m.label_mean) / m.label_std).expand(b, -1)
         actions = m.sample_actions(m.zx(z, x), robot_inputs, present_action, generator)
         return Prediction(actions * m.label_std + m.label_mean, latents, m.joint_log_prob(logits))
+
+
+def human_states(present: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """Human states ``[..., 15, 6]`` at steps t+1..t+15 from its present state ``present [6]`` and
+    sampled accelerations ``actions [..., 15, 2]`` (m/s²), by trapezoid integration (as recorded
+    human cars move)."""
+    actions = np.asarray(actions, dtype=np.float64)
+    states = np.empty((*actions.shape[:-1], 6))
+    for axis in (0, 1):  # x then y
+        acc = np.concatenate([np.broadcast_to(present[4 + axis], actions.shape[:-2] + (1,)), actions[..., axis]], axis=-1)
+        p, v = integrate_trapezoid(np.full(actions.shape[:-2], present[axis]), np.full(actions.shape[:-2], present[2 + axis]), acc)
+        states[..., axis], states[..., 2 + axis], states[..., 4 + axis] = p[..., 1:], v[..., 1:], acc[..., 1:]
+    return states
