@@ -15,6 +15,8 @@ from pathlib import Path
 from .errors import InputError
 
 DEFAULT_HITL_DIRS = ("../shared/reference/hitl", "shared/reference/hitl")
+DEMO_REAL_PICKS = [(2, 1, 10), (7, 1, 20), (12, 1, 25)]
+"""(trial, human agent, t) of the real trials drawn in the demo's prediction figure."""
 
 
 def _emit(args, payload: dict, text: str) -> None:
@@ -198,7 +200,7 @@ def _parse_pick(text: str, trials) -> tuple[int, int, int]:
 def cmd_predict(args) -> None:
     from .data.trials import load_trials
     from .model.checkpoint import choose_device, load_model
-    from .viz.predictions import plot_predictions
+    from .viz.model_figures import plot_predictions
 
     if args.samples < 1:
         raise InputError(f"--samples must be a positive integer, got {args.samples}")
@@ -252,6 +254,26 @@ def cmd_demo(args) -> None:
         print("\n(authors' human-in-the-loop recordings not found; pass --hitl DIR to compare with real drivers)")
     for path in write_figures(trials, out / "figures", reference):
         print(f"wrote {path}")
+    _demo_human_model(trials, reference, out / "figures")
+
+
+def _demo_human_model(trials, reference, figures: Path) -> None:
+    """The shipped human model on the real trials (when at hand) and its predictions as a figure."""
+    from .model.checkpoint import load_model
+    from .model.evaluate import evaluate
+    from .model.exemplars import build_exemplars
+    from .viz.model_figures import plot_predictions
+
+    model = load_model("default")
+    if reference is not None:
+        result = evaluate(model, build_exemplars(reference)).summary()
+        print(f"\nShipped human model ({model.config.name}, trained on simulated data) on the {len(reference)} real trials: "
+              f"{result['instances']} instances, NLL exact {result['nll_exact']:.3f}, IS {_fmt(result['nll_is'])}, "
+              f"naive {result['nll_naive']:.3f} nats (the authors' model, trained on real data: -12.717)")
+        picks, data, name = DEMO_REAL_PICKS, reference, "predictions_real.png"
+    else:
+        picks, data, name = [(0, 0, 12), (1, 1, 20)], trials, "predictions_synthetic.png"
+    print(f"wrote {plot_predictions(model, data, picks, figures / name, title='shipped human model: 50 sampled futures')}")
 
 
 # ---------------------------------------------------------------- parser

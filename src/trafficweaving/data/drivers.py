@@ -79,15 +79,15 @@ class DriverModel:
 
     # personal style ranges
     reaction_steps_range: tuple[int, int] = (2, 5)
-    throttle_range: tuple[float, float] = (2.0, 4.5)
-    brake_range: tuple[float, float] = (2.0, 6.0)
+    throttle_range: tuple[float, float] = (2.5, 4.5)
+    brake_range: tuple[float, float] = (2.5, 7.5)
     preferred_speed_range: tuple[float, float] = (27.5, 31.5)
     front_margin_range: tuple[float, float] = (1.0, 7.0)
     """Clearance beyond a car length a driver wants before cutting in, m."""
     lane_change_duration_range: tuple[float, float] = (3.0, 5.0)
     lane_change_earliest_x_range: tuple[float, float] = (-95.0, -50.0)
     """Personal earliest ``x`` at which a driver starts a lane change once the gap allows, m."""
-    pedal_lag_range: tuple[float, float] = (0.04, 0.12)
+    pedal_lag_range: tuple[float, float] = (0.03, 0.10)
     """Time constant of the pedal (first-order lag), s."""
     cruise_throttle_range: tuple[float, float] = (0.8, 2.6)
     """Gentle throttle a driver uses to regain its preferred speed, m/s²."""
@@ -95,7 +95,7 @@ class DriverModel:
     """Spread of where in the target lane a driver ends up, m (kept off the road edges)."""
     lateral_wander_sd: float = 0.35
     """Stationary spread of lane-keeping lateral acceleration noise, m/s²."""
-    pedal_noise_sd: float = 0.06
+    pedal_noise_sd: float = 0.1
     """Spread of throttle-level jitter while a pedal is pressed, m/s²."""
 
     def as_dict(self) -> dict:

@@ -48,6 +48,18 @@ def save_checkpoint(path: str | Path, model: CVAE, **fields) -> None:
         f.write(buffer.getvalue())
 
 
+TRAINING_ONLY = ("optimizer", "rng")
+
+
+def export_checkpoint(source: str | Path, destination: str | Path, **provenance) -> None:
+    """Copy a training checkpoint without what only resuming needs (optimizer moments, RNG state),
+    adding ``provenance`` fields (e.g. how the training data was made)."""
+    payload = read_checkpoint(source)
+    model = model_from_checkpoint(payload, source)
+    fields = {k: v for k, v in payload.items() if k not in (*TRAINING_ONLY, "format", "version", "config", "state_dict")}
+    save_checkpoint(destination, model, **fields, **provenance)
+
+
 def read_checkpoint(path: str | Path) -> dict:
     """The validated checkpoint dictionary; :class:`InputError` naming the file when it is not one."""
     path = Path(path)

@@ -215,10 +215,13 @@ class CVAE(nn.Module):
         return gmm.log_prob(batch.y.unsqueeze(0)).sum(-1), gmm
 
     def sample_actions(self, zx: torch.Tensor, robot_inputs: torch.Tensor, present_action: torch.Tensor,
-                       generator: torch.Generator | None = None) -> torch.Tensor:
+                       generator: torch.Generator | None = None,
+                       noise: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """Autoregressive samples of the human's future actions ``[S, B, N, 2]`` for
         ``zx [S, B, zx_size]``, ``robot_inputs [B, N, 6]`` (see :meth:`decoder_robot_inputs`) and
-        ``present_action [B, 2]``; each sampled action is fed back as the next input."""
+        ``present_action [B, 2]``; each sampled action is fed back as the next input. ``noise``
+        optionally gives the random numbers: uniforms ``[S, B, N]`` for the mixture component and
+        standard normals ``[S, B, N, 2]`` (otherwise drawn from ``generator``)."""
         s, b = zx.shape[:2]
         constant, per_step, w_action = self._decoder_parts(zx, robot_inputs, None)
         c, h = self.decoder_initial_state(zx)
@@ -228,7 +231,10 @@ class CVAE(nn.Module):
         for k in range(HORIZON):
             gates = (constant + per_step[:, k]).reshape(s * b, -1) + torch.matmul(action, w_action)
             state = self.decoder.step(gates, state)
-            action = self.gmm(state[1]).sample(generator)
+            if noise is None:
+                action = self.gmm(state[1]).sample(generator)
+            else:
+                action = self.gmm(state[1]).sample(uniform=noise[0][:, :, k].reshape(-1), normal=noise[1][:, :, k].reshape(-1, 2))
             samples.append(action)
         return torch.stack(samples, dim=1).view(s, b, HORIZON, ACTION_DIM)
 

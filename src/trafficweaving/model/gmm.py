@@ -35,18 +35,22 @@ class GMM:
         log_n = -_LOG_2PI - self.log_sigma.sum(-1) - 0.5 * torch.log(one_minus_r2) - 0.5 * quad
         return torch.logsumexp(self.log_pi + log_n, dim=-1).clamp(max=LOG_DENSITY_CAP)
 
-    def sample(self, generator: torch.Generator | None = None) -> torch.Tensor:
-        """One draw per batch element, ``[..., 2]``: the component by Gumbel-max on ``log_pi``,
-        then the correlated bivariate normal."""
-        u = torch.rand(self.log_pi.shape, generator=generator, device=self.log_pi.device, dtype=self.log_pi.dtype)
-        gumbel = -torch.log(-torch.log(u.clamp_min(1e-20)))
-        k = torch.argmax(self.log_pi + gumbel, dim=-1, keepdim=True)  # [..., 1]
+    def sample(self, generator: torch.Generator | None = None, uniform: torch.Tensor | None = None,
+               normal: torch.Tensor | None = None) -> torch.Tensor:
+        """One draw per batch element, ``[..., 2]``: the component by inverse-CDF sampling with
+        ``uniform [...]``, then the correlated bivariate normal from ``normal [..., 2]`` (both drawn
+        from ``generator`` when not given)."""
+        batch = self.log_pi.shape[:-1]
+        options = {"generator": generator, "device": self.log_pi.device, "dtype": self.log_pi.dtype}
+        uniform = torch.rand(batch, **options) if uniform is None else uniform
+        normal = torch.randn((*batch, 2), **options) if normal is None else normal
+        cdf = torch.cumsum(self.log_pi.exp(), dim=-1)
+        k = (cdf < uniform.unsqueeze(-1)).sum(-1, keepdim=True).clamp(max=self.log_pi.shape[-1] - 1)  # [..., 1]
         mu = torch.gather(self.mu, -2, k.unsqueeze(-1).expand(*k.shape, 2)).squeeze(-2)
         sigma = torch.gather(self.log_sigma, -2, k.unsqueeze(-1).expand(*k.shape, 2)).squeeze(-2).exp()
         corr = torch.gather(self.corr, -1, k).squeeze(-1)
-        e = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
-        first = e[..., 0]
-        second = corr * e[..., 0] + torch.sqrt(1.0 - corr.square()) * e[..., 1]
+        first = normal[..., 0]
+        second = corr * normal[..., 0] + torch.sqrt(1.0 - corr.square()) * normal[..., 1]
         return mu + sigma * torch.stack([first, second], dim=-1)
 
 

@@ -1,5 +1,5 @@
-"""The paper's Fig. 3: sampled human futures from the CVAE, coloured by latent value, beside the
-interaction history and the robot's (here: the other car's recorded) future."""
+"""Figures of human models: the paper's Fig. 3 (sampled human futures coloured by latent value,
+beside the interaction history and the robot's future) and validation curves of training runs."""
 
 from __future__ import annotations
 
@@ -51,5 +51,25 @@ def plot_predictions(model: CVAE, trials: TrialSet, picks: list[tuple[int, int, 
     axes[0].legend(loc="lower left", fontsize=7, ncol=4)
     if title:
         fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_validation_curves(histories: dict[str, list[tuple[int, float]]], path: str | os.PathLike,
+                           reference: dict[str, float] | None = None) -> Path:
+    """Validation NLL (nats, physical units) against training step for named runs; ``reference``
+    draws horizontal lines (e.g. a model evaluated on the same exemplars)."""
+    fig = Figure(figsize=(7, 4))
+    ax = fig.subplots()
+    for name, history in histories.items():
+        steps, values = zip(*history)
+        ax.plot(steps, values, marker=".", label=name)
+    for name, value in (reference or {}).items():
+        ax.axhline(value, color="0.4", ls="--", lw=1)
+        ax.text(ax.get_xlim()[1], value, f" {name}", va="center", fontsize=8)
+    ax.set_xlabel("training step")
+    ax.set_ylabel("validation NLL (nats per exemplar)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
     fig.tight_layout()
     return _save(fig, path)
