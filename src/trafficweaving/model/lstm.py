@@ -54,11 +54,14 @@ class LSTMCell(nn.Module):
     def run(self, inputs: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor] | None = None,
             dropout: float = 0.0) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
         """Run over ``inputs [B, L, input_size]`` from ``state`` (zeros when None); returns the
-        outputs ``h`` of every step ``[B, L, u]`` and the final ``(c, h)``."""
+        outputs ``h`` of every step ``[B, L, u]`` and the final ``(c, h)``. Without dropout this
+        is PyTorch's fused LSTM (same function, gates reordered, forget bias folded in)."""
         batch, steps = inputs.shape[:2]
         if state is None:
             zeros = inputs.new_zeros(batch, self.units)
             state = (zeros, zeros)
+        if dropout <= 0.0:
+            return self._run_fused(inputs, state)
         gates_in = self.project(inputs)
         keep = dropout_masks(steps, batch, self.units, dropout, inputs)
         outputs = []
@@ -66,6 +69,20 @@ class LSTMCell(nn.Module):
             state = self.step(gates_in[:, k], state, None if keep is None else keep[k])
             outputs.append(state[1])
         return torch.stack(outputs, dim=1), state
+
+    def _run_fused(self, inputs: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor]):
+        def reorder(w):  # gates (i, j, f, o) -> PyTorch's (i, f, g=j, o), as [4u, ·]
+            i, j, f, o = w.chunk(4, dim=-1)
+            return torch.cat([i, f, j, o], dim=-1)
+
+        bias = reorder(self.bias.unsqueeze(0))[0] + torch.cat(
+            [torch.zeros_like(self.bias[: self.units]), torch.full_like(self.bias[: self.units], FORGET_BIAS),
+             torch.zeros_like(self.bias[: 2 * self.units])])
+        c, h = state
+        weights = [reorder(self.weight_input).T, reorder(self.weight_hidden).T, bias, torch.zeros_like(bias)]
+        outputs, h_n, c_n = torch.lstm(inputs, (h.unsqueeze(0).contiguous(), c.unsqueeze(0).contiguous()), weights,
+                                       True, 1, 0.0, self.training, False, True)
+        return outputs, (c_n[0], h_n[0])
 
 
 def dropout_masks(steps: int, batch: int, units: int, dropout: float, like: torch.Tensor) -> torch.Tensor | None:

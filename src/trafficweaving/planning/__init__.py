@@ -1,0 +1,1 @@
+"""Robot planning by exhaustive sampling: candidate action sequences, costs, the two-stage scorer, MPC."""

@@ -1,0 +1,157 @@
+"""Fast batched sampling of human futures for planning: one history, many candidate robot futures,
+many samples each.
+
+The same distribution as :meth:`CVAE.sample_actions` (given the same random numbers it returns
+the same samples, to rounding), reorganised for throughput:
+
+* the decoder's input is ``[z, x, robot_state, action]``; the ``z`` and ``x`` parts are constant
+  over the 15 steps and ``z`` is one of 25 one-hot values, so their gate (and initial-state)
+  contributions are one row of a 25-row table plus one row per candidate, computed once;
+* each step's gates are one matrix multiply ``[h, robot_state, action] @ [W_h; W_robot; W_action]``
+  added to the constant part, from one row buffer that the step writes ``h`` and the sampled
+  action into;
+* gate columns are reordered ``(i, f, o, j)``, the forget bias is folded into the bias and the
+  ``j`` columns are doubled, so that one in-place sigmoid gives every gate: ``tanh(x) = 2σ(2x) - 1``
+  (PyTorch's CPU ``tanh`` costs about seven sigmoids); the gate arithmetic runs in place;
+* the mixture component is drawn by inverse CDF from one uniform (no Gumbel logarithms);
+* rows run in cache-sized chunks.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..model.cvae import CVAE, HORIZON, STATE_DIM
+from ..model.lstm import FORGET_BIAS
+from ..model.gmm import LOG_SIGMA_CLIP
+
+
+def _reorder_gates(w: torch.Tensor) -> torch.Tensor:
+    """Gate columns from ``(i, j, f, o)`` to ``(i, f, o, 2·j)`` (see the module docstring)."""
+    i, j, f, o = w.chunk(4, dim=-1)
+    return torch.cat([i, f, o, 2.0 * j], dim=-1)
+
+
+class BatchedSampler:
+    """Samples ``[n, C, 15, 2]`` human action sequences (standardised units) for ``C`` candidates.
+
+    Use :meth:`encode` once per history and candidate set, then :meth:`sample` (possibly several
+    times, e.g. for the two planning stages on subsets of candidates).
+    """
+
+    def __init__(self, model: CVAE, chunk_rows: int = 2048):
+        m, c = model.eval(), model.config
+        self.model, self.chunk_rows = m, chunk_rows
+        self.components = c.components
+        units = c.decoder_units
+        with torch.no_grad():
+            w = _reorder_gates(m.decoder.weight_input)  # [zx + 6 + 2, 4u]
+            bias = _reorder_gates(m.decoder.bias.unsqueeze(0))[0].clone()
+            bias[units:2 * units] += FORGET_BIAS  # the f block
+            nz = c.latent_size
+            self.w_gate_z, self.w_gate_x = w[:nz], w[nz:nz + c.x_size]
+            # rows for the step buffer [h, robot_state, action]
+            self.w_step = torch.cat([_reorder_gates(m.decoder.weight_hidden), w[nz + c.x_size:]]).contiguous()  # [u + 8, 4u]
+            self.gate_bias = bias
+            init = m.decoder_initial_state
+            w_init = torch.cat([init.initial_c.weight, init.initial_h.weight]).T  # [zx, 2u]
+            self.w_init_z, self.w_init_x = w_init[:nz], w_init[nz:]
+            self.init_bias = torch.cat([init.initial_c.bias, init.initial_h.bias])
+            g = m.gmm
+            head = torch.cat([g.log_pi.weight, g.mu.weight, g.log_sigma.weight, g.corr.weight]).T  # [u, 6M]
+            self.head_bias = torch.cat([g.log_pi.bias, g.mu.bias, g.log_sigma.bias, g.corr.bias])
+            self.w_head = head.contiguous()
+            latent_gates = m.latent_onehots @ self.w_gate_z  # [Z, 4u]
+            latent_init = m.latent_onehots @ self.w_init_z  # [Z, 2u]
+            self.latent_gates, self.latent_init = latent_gates, latent_init
+
+    @torch.no_grad()
+    def encode(self, history: torch.Tensor, robot_futures: torch.Tensor) -> dict:
+        """Per-candidate parts of the decoder for standardised ``history [t+1, 12]`` (robot, human)
+        and ``robot_futures [C, 15, 6]``: prior logits, constant gates and initial-state inputs, and
+        the robot state fed at each decoder step."""
+        m = self.model
+        c_count = robot_futures.shape[0]
+        robot_present, human_present = history[-1, :STATE_DIM], history[-1, STATE_DIM:]
+        history_h = m.encode_history(history.unsqueeze(0), torch.tensor([history.shape[0] - 1], device=history.device))
+        x = torch.cat([history_h.expand(c_count, -1), m.encode_robot_future(robot_futures, robot_present.expand(c_count, -1))], -1)
+        robot_inputs = torch.cat([robot_present.expand(c_count, 1, -1), robot_futures[:, :-1]], dim=1)
+        present_action = (human_present[4:6] * m.feature_std[4:6] + m.feature_mean[4:6] - m.label_mean) / m.label_std
+        return {
+            "log_p_z": torch.log_softmax(m.p_z_logits(x), dim=-1),  # [C, N_z, K_z]
+            "x_gates": x @ self.w_gate_x + self.gate_bias,  # [C, 4u]
+            "x_init": x @ self.w_init_x + self.init_bias,  # [C, 2u]
+            "robot_inputs": robot_inputs.transpose(0, 1).contiguous(),  # [15, C, 6]
+            "present_action": present_action,
+        }
+
+    def sample_latents(self, context: dict, n: int, generator: torch.Generator | None, candidates: torch.Tensor | None = None) -> torch.Tensor:
+        """Joint latent values ``[n, C']`` drawn from p(z|x) of each candidate (all, or ``candidates``)."""
+        log_p = context["log_p_z"] if candidates is None else context["log_p_z"][candidates]
+        c = self.model.config
+        u = torch.rand((n, *log_p.shape), generator=generator, device=log_p.device, dtype=log_p.dtype)
+        classes = torch.argmax(log_p - torch.log(-torch.log(u.clamp_min(1e-20))), dim=-1)  # [n, C', N_z]
+        place = c.latent_classes ** torch.arange(c.latent_vars - 1, -1, -1, device=log_p.device)
+        return (classes * place).sum(-1)
+
+    @torch.no_grad()
+    def sample(self, context: dict, latents: torch.Tensor, candidates: torch.Tensor | None = None,
+               generator: torch.Generator | None = None,
+               noise: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """Human actions ``[n, C', 15, 2]`` (standardised) for ``latents [n, C']`` of the
+        candidates ``candidates [C']`` (default: all). ``noise`` optionally gives the uniforms
+        ``[n, C', 15]`` and normals ``[n, C', 15, 2]`` (as :meth:`CVAE.sample_actions` takes them)."""
+        n, c_count = latents.shape
+        device, dtype = latents.device, context["x_gates"].dtype
+        cand = torch.arange(c_count, device=device) if candidates is None else candidates
+        rows_cand = cand.repeat(n)  # row r = (sample r // C', candidate r % C')
+        rows_z = latents.reshape(-1)
+        if noise is None:
+            uniform = torch.rand((n * c_count, HORIZON), generator=generator, device=device, dtype=dtype)
+            normal = torch.randn((n * c_count, HORIZON, 2), generator=generator, device=device, dtype=dtype)
+        else:
+            uniform, normal = noise[0].reshape(-1, HORIZON), noise[1].reshape(-1, HORIZON, 2)
+        out = torch.empty((n * c_count, HORIZON, 2), device=device, dtype=dtype)
+        for start in range(0, n * c_count, self.chunk_rows):
+            rows = slice(start, start + self.chunk_rows)
+            out[rows] = self._decode_chunk(context, rows_cand[rows], rows_z[rows], uniform[rows], normal[rows])
+        return out.view(n, c_count, HORIZON, 2)
+
+    def _decode_chunk(self, ctx: dict, cand: torch.Tensor, z: torch.Tensor, uniform: torch.Tensor,
+                      normal: torch.Tensor) -> torch.Tensor:
+        units = self.w_head.shape[0]
+        rows = len(cand)
+        constant = ctx["x_gates"].index_select(0, cand) + self.latent_gates.index_select(0, z)  # [R, 4u]
+        init = torch.tanh(ctx["x_init"].index_select(0, cand) + self.latent_init.index_select(0, z))
+        c = init[:, :units].contiguous()
+        step_in = torch.empty((rows, units + STATE_DIM + 2), dtype=c.dtype, device=c.device)  # [h, robot, action]
+        step_in[:, :units] = init[:, units:]
+        step_in[:, units + STATE_DIM:] = ctx["present_action"]
+        h, robot, action = step_in[:, :units], step_in[:, units:units + STATE_DIM], step_in[:, units + STATE_DIM:]
+        i, f, o, j = (slice(k * units, (k + 1) * units) for k in range(4))
+        squashed = torch.empty_like(c)
+        actions = torch.empty((rows, HORIZON, 2), dtype=c.dtype, device=c.device)
+        for k in range(HORIZON):
+            robot.copy_(ctx["robot_inputs"][k].index_select(0, cand))
+            gates = torch.addmm(constant, step_in, self.w_step)
+            torch.sigmoid_(gates)  # i, f, o and σ(2j)
+            c.mul_(gates[:, f]).addcmul_(gates[:, i], gates[:, j], value=2.0).sub_(gates[:, i])  # c·f + i·tanh(j)
+            torch.mul(c, 2.0, out=squashed).sigmoid_().mul_(2.0).sub_(1.0)  # tanh(c)
+            torch.mul(squashed, gates[:, o], out=h)
+            head = torch.addmm(self.head_bias, h, self.w_head)
+            sample = self._sample_head(head, uniform[:, k], normal[:, k])
+            action.copy_(sample)
+            actions[:, k] = sample
+        return actions
+
+    def _sample_head(self, head: torch.Tensor, uniform: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+        m_count = self.components
+        cdf = torch.softmax(head[:, :m_count], dim=-1).cumsum_(-1)
+        k = (cdf < uniform.unsqueeze(-1)).sum(-1, keepdim=True).clamp_(max=m_count - 1)  # [R, 1]
+        pair = torch.cat([2 * k, 2 * k + 1], dim=1)
+        mu = head[:, m_count:3 * m_count].gather(1, pair)
+        sigma = head[:, 3 * m_count:5 * m_count].gather(1, pair).clamp_(-LOG_SIGMA_CLIP, LOG_SIGMA_CLIP).exp_()
+        corr = torch.tanh(head[:, 5 * m_count:].gather(1, k))
+        e0, e1 = normal[:, :1], normal[:, 1:]
+        second = corr * e0 + torch.sqrt(1.0 - corr * corr) * e1
+        return mu + sigma * torch.cat([e0, second], dim=1)

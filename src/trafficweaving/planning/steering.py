@@ -1,0 +1,90 @@
+"""Lateral steering of the robot: a triple integrator in ``y`` driven by jerk.
+
+At the start of each window the robot solves the two-point boundary value problem from
+``(y, yd, ydd)`` to ``(y_target, 0, 0)`` with free final time ``T`` and cost
+``∫_0^T 1 + yddd²/ρ dt`` (ρ = 1000) and follows the optimal trajectory (DESIGN.md §4).
+
+For a fixed ``T`` the minimum-energy jerk is ``u(t) = b(T - t)ᵀ G(T)⁻¹ d(T)`` with
+``b(s) = [s²/2, s, 1]``, ``G`` the controllability Gramian of the triple integrator and ``d`` the
+final state minus the free (zero-jerk) drift, so the cost is ``J(T) = T + d(T)ᵀ G(T)⁻¹ d(T) / ρ``,
+minimised over ``T`` (vectorised golden-section search on ``log T``). Past ``T`` the target is held.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+JERK_WEIGHT = 1000.0  # ρ
+T_BOUNDS = (1e-3, 60.0)  # s: search range for the free final time
+_GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
+
+
+def _gramian(T: np.ndarray) -> np.ndarray:
+    """Controllability Gramian ``[..., 3, 3]`` of the triple integrator over ``T [...]`` s."""
+    T2, T3 = T * T, T * T * T
+    rows = [[T3 * T2 / 20, T2 * T2 / 8, T3 / 6], [T2 * T2 / 8, T3 / 3, T2 / 2], [T3 / 6, T2 / 2, T]]
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def _drift_gap(state: np.ndarray, target: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``d = [target, 0, 0] - e^{AT} state`` ``[..., 3]`` for ``state [..., 3]`` (y, yd, ydd)."""
+    y, v, a = state[..., 0], state[..., 1], state[..., 2]
+    return np.stack([target - (y + v * T + a * T * T / 2), -(v + a * T), -a], axis=-1)
+
+
+def _coefficients(state: np.ndarray, target: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``G(T)⁻¹ d(T)`` ``[..., 3]``: the optimal jerk is ``b(T - t) · coefficients``."""
+    return np.linalg.solve(_gramian(T), _drift_gap(state, target, T)[..., None])[..., 0]
+
+
+def steering_cost(state: np.ndarray, target: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``J(T) = T + (1/ρ) ∫ u² dt`` of the minimum-energy steering with final time ``T`` (s)."""
+    d = _drift_gap(state, target, T)
+    return T + np.einsum("...i,...i->...", d, _coefficients(state, target, T)) / JERK_WEIGHT
+
+
+def optimal_time(state: np.ndarray, target: np.ndarray, iterations: int = 50) -> np.ndarray:
+    """Free final time ``T* [...]`` (s) minimising :func:`steering_cost`; 0 where the state is
+    already at the target. ``state [..., 3]``, ``target [...]`` (m)."""
+    state, target = np.asarray(state, float), np.asarray(target, float)
+    lo = np.full(target.shape, np.log(T_BOUNDS[0]))
+    hi = np.full(target.shape, np.log(T_BOUNDS[1]))
+    cost = lambda u: steering_cost(state, target, np.exp(u))  # noqa: E731
+    a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
+    fa, fb = cost(a), cost(b)
+    for _ in range(iterations):
+        left = fa < fb
+        hi, lo = np.where(left, b, hi), np.where(left, lo, a)
+        b_new, a_new = np.where(left, a, lo + _GOLDEN * (hi - lo)), np.where(left, hi - _GOLDEN * (hi - lo), b)
+        a, b = a_new, b_new
+        fa, fb = np.where(left, cost(a), fb), np.where(left, fa, cost(b))
+    T = np.exp((lo + hi) / 2)
+    at_target = np.all(np.abs(_drift_gap(state, target, np.zeros_like(target))) < 1e-9, axis=-1)
+    return np.where(at_target, 0.0, T)
+
+
+def steer(state: np.ndarray, target: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """States ``[..., len(times), 4]`` = ``(y, yd, ydd, yddd)`` at ``times`` (s after the start) along
+    the optimal steering from ``state [..., 3]`` to ``(target, 0, 0)``; the target is held (jerk 0,
+    at rest) once the final time is reached."""
+    state, target, times = np.asarray(state, float), np.asarray(target, float), np.asarray(times, float)
+    T = optimal_time(state, target)
+    safe_T = np.where(T > 0, T, 1.0)
+    c = _coefficients(state, target, safe_T)  # [..., 3]
+    t = np.minimum(times, T[..., None])  # [..., K]
+    s = T[..., None] - t  # time to go
+    c0, c1, c2 = (c[..., k, None] for k in range(3))
+    # u(t) = c0 (T-t)²/2 + c1 (T-t) + c2; integrate three times from the initial state
+    # in powers of t: u = p0 + p1 t + p2 t² with
+    p0 = c0 * safe_T[..., None] ** 2 / 2 + c1 * safe_T[..., None] + c2
+    p1 = -(c0 * safe_T[..., None] + c1)
+    p2 = c0 / 2
+    y0, v0, a0 = (state[..., k, None] for k in range(3))
+    acc = a0 + p0 * t + p1 * t**2 / 2 + p2 * t**3 / 3
+    vel = v0 + a0 * t + p0 * t**2 / 2 + p1 * t**3 / 6 + p2 * t**4 / 12
+    pos = y0 + v0 * t + a0 * t**2 / 2 + p0 * t**3 / 6 + p1 * t**4 / 24 + p2 * t**5 / 60
+    jerk = np.where(times < T[..., None], c0 * s**2 / 2 + c1 * s + c2, 0.0)
+    out = np.stack([pos, vel, acc, jerk], axis=-1)
+    done = (T <= 0)[..., None, None]
+    held = np.stack(np.broadcast_arrays(state[..., None, 0], state[..., None, 1], state[..., None, 2], np.zeros_like(t)), -1)
+    return np.where(done, held, out)

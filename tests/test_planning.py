@@ -1,0 +1,268 @@
+"""The planner: lateral steering (boundary-value problem), candidate dynamics, costs, the fast
+sampler against the model's own, two-stage selection on a toy model, deadlines and MPC."""
+
+import numpy as np
+import pytest
+import torch
+
+from trafficweaving.dynamics import integrate_trapezoid
+from trafficweaving.model.cvae import CVAE, CVAEConfig
+from trafficweaving.planning.candidates import ACCELERATIONS, Action, action_sequences, robot_candidates, rollout
+from trafficweaving.planning.costs import PaperCost
+from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
+from trafficweaving.planning.planner import Budget, Planner, integrate_human
+from trafficweaving.planning.sampler import BatchedSampler
+from trafficweaving.planning.steering import optimal_time, steer, steering_cost
+from trafficweaving.scenario import DT, LANE_CENTRE_Y
+
+LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
+STATES = np.array([[RIGHT, 0.0, 0.0], [LEFT, 0.4, -0.5], [-3.5, -1.2, 2.0], [-5.0, 0.8, 0.3]])
+TARGETS = np.array([LEFT, RIGHT, RIGHT, LEFT])
+
+
+# ---------------------------------------------------------------- steering
+def test_steering_reaches_the_target_at_rest_and_holds_it():
+    T = optimal_time(STATES, TARGETS)
+    end = steer(STATES, TARGETS, np.stack([T, T + 0.5, T + 3.0], axis=-1))
+    np.testing.assert_allclose(end[..., 0], TARGETS[:, None].repeat(3, 1), atol=1e-9)
+    np.testing.assert_allclose(end[..., 1:], 0.0, atol=1e-9)
+
+
+def test_steering_time_minimises_the_cost():
+    T = optimal_time(STATES, TARGETS)
+    for k in range(len(T)):
+        grid = np.linspace(0.05, 12.0, 120_001)
+        brute = steering_cost(np.repeat(STATES[k:k + 1], len(grid), 0), np.full(len(grid), TARGETS[k]), grid)
+        assert steering_cost(STATES[k], TARGETS[k], T[k]) <= brute.min() + 1e-9
+        assert abs(T[k] - grid[brute.argmin()]) < 1e-3
+
+
+def test_steering_is_the_minimum_energy_jerk_and_integrates_consistently():
+    state, target = STATES[2], TARGETS[2]
+    T = float(optimal_time(state, target))
+    times = np.linspace(0.0, T, 20_001)[:-1]  # up to the final time, where the hold begins
+    path = steer(state, target, times)  # [K, 4]: y, yd, ydd, yddd
+    dt = times[1] - times[0]
+    for lower, upper in ((2, 3), (1, 2), (0, 1)):  # integrate each derivative (trapezoid) and compare
+        integrated = path[0, lower] + np.concatenate([[0.0], np.cumsum(0.5 * dt * (path[1:, upper] + path[:-1, upper]))])
+        np.testing.assert_allclose(integrated, path[:, lower], atol=1e-6)
+    energy = np.trapezoid(path[:, 3] ** 2, times)
+    assert T + energy / 1000.0 == pytest.approx(float(steering_cost(state, target, T)), rel=1e-4)
+    # any other jerk profile reaching the same final state differs by a perturbation orthogonal to
+    # (T-t)²/2, T-t and 1 (the final state is linear in exactly these moments) and costs more
+    basis = np.stack([(T - times) ** 2 / 2, T - times, np.ones_like(times)], axis=1)
+    bump = np.sin(3 * np.pi * times / T) + 0.5 * np.cos(7 * times)
+    bump -= basis @ np.linalg.lstsq(basis, bump, rcond=None)[0]
+    assert np.abs(np.trapezoid(basis * bump[:, None], times, axis=0)).max() < 1e-3
+    for scale in (0.05, 0.5, 2.0):
+        assert np.trapezoid((path[:, 3] + scale * bump) ** 2, times) > energy
+
+
+def test_at_target_means_no_motion():
+    path = steer(np.array([LEFT, 0.0, 0.0]), np.array(LEFT), np.array([0.1, 0.2, 0.3]))
+    np.testing.assert_allclose(path[:, 0], LEFT)
+    np.testing.assert_allclose(path[:, 1:], 0.0)
+
+
+# ---------------------------------------------------------------- candidates
+PRESENT = np.array([-90.0, RIGHT, 29.0, 0.0, 0.0, 0.0])
+
+
+def test_4096_distinct_candidates_with_the_first_window_fixed():
+    first = Action.of(4.0, "right").index
+    c = robot_candidates(PRESENT, first)
+    assert c.states.shape == (4096, 15, 6) and c.actions.shape == (4096, 5)
+    assert (c.actions[:, 0] == first).all() and len({tuple(a) for a in c.actions}) == 4096
+    same = c.states[:, :3].copy()
+    same[:, 2, 4] = 0.0  # the xdd stored at the window's last step is the next window's acceleration
+    np.testing.assert_allclose(same, np.broadcast_to(same[:1], (4096, 3, 6)))
+    assert Action(first).acceleration == 4.0 and Action(first).lane == "right"
+
+
+def test_candidate_longitudinal_dynamics_euler_velocity_trapezoid_position():
+    c = robot_candidates(PRESENT, Action.of(0.0, "right").index)
+    for k in (0, 1234, 4095):
+        acc = np.repeat([ACCELERATIONS[a // 2] for a in c.actions[k]], 3)  # applied from t .. t+14
+        xd = np.concatenate([[PRESENT[2]], c.states[k, :, 2]])
+        x = np.concatenate([[PRESENT[0]], c.states[k, :, 0]])
+        np.testing.assert_allclose(np.diff(xd), DT * acc, atol=1e-12)
+        np.testing.assert_allclose(np.diff(x), 0.5 * DT * (xd[1:] + xd[:-1]), atol=1e-12)
+        np.testing.assert_allclose(c.states[k, :-1, 4], acc[1:])  # xdd stored at a step = applied from it
+
+
+def test_candidate_lateral_motion_follows_the_steering_window_by_window():
+    actions = np.array([[Action.of(0.0, "right").index, Action.of(0.0, "left").index, Action.of(4.0, "left").index,
+                         Action.of(-3.0, "right").index, Action.of(0.0, "left").index]])
+    states = rollout(PRESENT, actions)[0]
+    lateral = PRESENT[[1, 3, 5]]
+    for w, a in enumerate(actions[0]):
+        window = steer(lateral, np.array(LANE_CENTRE_Y[Action(int(a)).lane]), DT * np.arange(1, 4))
+        np.testing.assert_allclose(states[3 * w:3 * w + 3][:, [1, 3, 5]], window[:, :3], atol=1e-12)
+        lateral = window[-1, :3]
+    hold = rollout(PRESENT, np.full((1, 5), Action.of(0.0, "right").index))[0]
+    np.testing.assert_allclose(hold[:, 1], RIGHT) and np.testing.assert_allclose(hold[:, 2], PRESENT[2])
+
+
+def test_action_sequences_order():
+    seqs = action_sequences(3)
+    assert seqs.shape == (4096, 5) and (seqs[:8, -1] == np.arange(8)).all() and (seqs[-1] == [3, 7, 7, 7, 7]).all()
+
+
+# ---------------------------------------------------------------- costs
+def _pair(robot_xy_v, human_xy_v, steps=15):
+    r, h = torch.zeros(steps, 6, dtype=torch.float64), torch.zeros(steps, 6, dtype=torch.float64)
+    r[:, [0, 1, 2, 4]] = torch.tensor(robot_xy_v, dtype=torch.float64)
+    h[:, [0, 1, 2, 4]] = torch.tensor(human_xy_v, dtype=torch.float64)
+    return r, h
+
+
+def test_cost_terms_by_hand():
+    cost = PaperCost(goal_y=LEFT)
+    # 3 m behind and 1 m beside: collision zone; robot 2 m/s slower and behind: moving apart rewarded
+    r, h = _pair([-60.0, LEFT - 1.0, 27.0, 2.0], [-57.0, LEFT, 29.0, 0.0])
+    terms = cost.terms(r, h)
+    assert terms["collision"][0].item() == pytest.approx(1000 * (9.25 - np.sqrt(10.0)))
+    assert terms["effort"][0].item() == pytest.approx(4.0)
+    assert terms["lane"][0].item() == pytest.approx(500 * min(1.5 - 60 / 150, 1.0) * 1.0)
+    assert terms["separation"][0].item() == pytest.approx(-100 * min(max(-3.0 * -2.0, 0), 1))
+    total = sum(v[0].item() for v in terms.values())
+    assert cost(r, h).item() == pytest.approx(total * sum(0.9 ** i for i in range(1, 16)))
+    # far apart, on goal, closing in: only effort
+    r, h = _pair([-200.0, LEFT, 29.0, 0.0], [-100.0, RIGHT, 27.0, 0.0])
+    terms = cost.terms(r, h)
+    assert terms["collision"].abs().sum() == 0 and terms["lane"].abs().sum() == 0 and terms["separation"].abs().sum() == 0
+    # lane urgency ramps: weight 1.5 + x/150, capped at 1
+    r, _ = _pair([-150.0, RIGHT, 29.0, 0.0], [0.0, 0.0, 0.0, 0.0])
+    assert cost.terms(r, h)["lane"][0].item() == pytest.approx(500 * 0.5 * (LEFT - RIGHT))
+
+
+def test_cost_broadcasts_over_samples_and_candidates():
+    cost = PaperCost(goal_y=LEFT)
+    robot = torch.randn(1, 7, 15, 6, dtype=torch.float64)
+    human = torch.randn(5, 7, 15, 6, dtype=torch.float64)
+    out = cost(robot, human)
+    assert out.shape == (5, 7)
+    assert out[2, 3].item() == pytest.approx(cost(robot[0, 3], human[2, 3]).item())
+
+
+def test_human_integration_is_the_trapezoid_rule():
+    present = torch.tensor([-80.0, RIGHT, 28.0, 0.3, 1.0, -0.2], dtype=torch.float64)
+    actions = torch.randn(4, 15, 2, dtype=torch.float64)
+    states = integrate_human(present, actions)
+    for axis in (0, 1):
+        p, v = integrate_trapezoid(np.full(4, present[axis].item()), np.full(4, present[2 + axis].item()),
+                                   np.concatenate([np.full((4, 1), present[4 + axis].item()), actions[..., axis].numpy()], 1))
+        np.testing.assert_allclose(states[..., axis].numpy(), p[:, 1:], atol=1e-10)
+        np.testing.assert_allclose(states[..., 2 + axis].numpy(), v[:, 1:], atol=1e-10)
+
+
+# ---------------------------------------------------------------- fast sampler
+@pytest.mark.parametrize("variant", ["cvae", "mixture-lstm", "lstm"])
+def test_fast_sampler_equals_the_models_sampling_given_the_same_random_numbers(variant):
+    torch.manual_seed(0)
+    model = CVAE(CVAEConfig.variant(variant)).double().eval()
+    history = torch.randn(9, 12, dtype=torch.float64)
+    futures = torch.randn(6, 15, 6, dtype=torch.float64)
+    fast = BatchedSampler(model, chunk_rows=5)  # chunks that split candidates
+    context = fast.encode(history, futures)
+    g = torch.Generator().manual_seed(1)
+    latents = fast.sample_latents(context, 4, g)
+    noise = (torch.rand(4, 6, 15, generator=g, dtype=torch.float64), torch.randn(4, 6, 15, 2, generator=g, dtype=torch.float64))
+    ours = fast.sample(context, latents, noise=noise)
+    with torch.no_grad():
+        x = torch.cat([model.encode_history(history[None], torch.tensor([8])).expand(6, -1),
+                       model.encode_robot_future(futures, history[-1, :6].expand(6, -1))], -1)
+        zx = torch.cat([model.latent_onehots[latents], x.expand(4, -1, -1)], -1)
+        robot_inputs = torch.cat([history[-1, :6].expand(6, 1, -1), futures[:, :-1]], 1)
+        present = ((history[-1, 10:12] * model.feature_std[4:6] + model.feature_mean[4:6] - model.label_mean) / model.label_std)
+        reference = model.sample_actions(zx, robot_inputs, present.expand(6, -1), noise=noise)
+    torch.testing.assert_close(ours, reference, rtol=0, atol=1e-10)
+
+
+# ---------------------------------------------------------------- two-stage planner on a toy model
+class ToyHuman:
+    """Human accelerations ``N(0, 1)`` per step, independent of the robot: with :func:`toy_cost`
+    each candidate's expected cost is known exactly."""
+
+    def prepare(self, history, robot_futures):
+        pass
+
+    def sample(self, candidates, n, generator):
+        return torch.randn((n, len(candidates), 15, 2), generator=generator, dtype=torch.float64)
+
+
+def toy_cost(robot, human):
+    """Expected value: 200 per free window whose acceleration is not 4 m/s² (the 16 candidates that
+    accelerate throughout are optimal); noise: sd 800 per sampled future, so 16 samples (sd 200)
+    often rank one of the 192 candidates 200 worse first, 1024 samples (sd 25) do not."""
+    windows = robot[..., [3, 6, 9, 12], 4]  # acceleration of windows 1..4
+    return 200.0 * (windows != 4.0).sum(-1) + 3100.0 * human[..., 4].mean(-1)
+
+
+PRESENT_TOY = np.array([0.0, RIGHT, 30.0, 0.0, 0.0, 0.0])
+HISTORY_TOY = np.repeat(np.stack([PRESENT_TOY, PRESENT_TOY + [0, 4.26, 0, 0, 0, 0]])[None], 6, axis=0)
+
+
+def _accelerates_throughout(plan):
+    return all(Action(int(a)).acceleration == 4.0 for a in plan.actions[1:])
+
+
+def test_two_stage_selection_finds_the_known_optimum():
+    for seed in range(3):
+        plan = Planner(ToyHuman(), seed=seed, device="cpu").plan(HISTORY_TOY, Action.of(0.0, "right").index, cost=toy_cost)
+        assert _accelerates_throughout(plan)
+        assert plan.futures == 4096 * 16 + 32 * 1024 and len(plan.finalists) == 32
+        assert set(np.argsort(plan.first_stage_cost)[:32]) == set(plan.finalists)
+
+
+def test_second_stage_corrects_a_noisy_first_stage():
+    corrected = 0
+    for seed in range(6):
+        plan = Planner(ToyHuman(), seed=seed, device="cpu").plan(HISTORY_TOY, Action.of(0.0, "right").index, cost=toy_cost)
+        stage1_choice = plan.candidates.actions[int(np.argmin(plan.first_stage_cost))]
+        corrected += not all(Action(int(a)).acceleration == 4.0 for a in stage1_choice[1:])
+        assert _accelerates_throughout(plan)
+    assert corrected >= 1  # stage 1 alone would have picked a worse sequence at least once
+
+
+def test_budget_counts_are_configurable():
+    plan = Planner(ToyHuman(), device="cpu").plan(HISTORY_TOY, 0, toy_cost, budget=Budget(2, 5, 7))
+    assert plan.futures == 4096 * 2 + 5 * 7 and len(plan.finalists) == 5 and plan.second_stage_samples == 7
+
+
+# ---------------------------------------------------------------- deadlines and MPC
+def _history(steps=10):
+    robot = np.array([-120.0, RIGHT, 29.0, 0.0, 0.0, 0.0])
+    human = np.array([-118.0, LEFT, 29.0, 0.0, 0.0, 0.0])
+    t = DT * np.arange(steps)[:, None]
+    return np.stack([robot + t * [29.0, 0, 0, 0, 0, 0], human + t * [29.0, 0, 0, 0, 0, 0]], axis=1)
+
+
+def test_real_time_mode_returns_within_the_deadline():
+    torch.manual_seed(0)
+    planner = Planner(CVAE())
+    history = _history()
+    for deadline in (1.0, 0.6):
+        plan = planner.plan(history, Action.of(0.0, "right").index, PaperCost(goal_y=LEFT), deadline=deadline)
+        assert plan.seconds <= deadline
+        assert plan.first_stage_samples >= 1 and np.isfinite(plan.first_stage_cost).any()
+
+
+def test_mpc_holds_then_replans_every_window_with_the_fixed_first_window():
+    torch.manual_seed(0)
+    policy = MPCPolicy(Planner(CVAE()), budget=Budget(1, 2, 2))
+    history = _history(1)
+    policy.reset(history[0, 0])
+    for t in range(HOLD_STEPS + 9):
+        robot = policy.step(history)
+        human = history[-1, 1] + [29.0 * DT, 0, 0, 0, 0, 0]
+        history = np.concatenate([history, np.stack([robot, human])[None]])
+    hold = history[: HOLD_STEPS + 1, 0]
+    np.testing.assert_allclose(hold[:, 1], RIGHT) and np.testing.assert_allclose(hold[:, 2], 29.0)
+    assert len(policy.plans) == 3  # at t = 8, 11, 14
+    assert policy.plans[0].actions[0] == Action.of(0.0, "right").index
+    for previous, current in zip(policy.plans, policy.plans[1:]):
+        assert current.actions[0] == previous.actions[1]
+    # what the robot executed in window t = 11..14 is the first plan's window 1
+    executed = rollout(history[11, 0], policy.plans[0].actions[1:2][None])[0]
+    np.testing.assert_allclose(history[12:15, 0], executed)
