@@ -154,3 +154,13 @@ def test_default_model_is_shipped_trained_and_evaluates(capsys, tmp_path):
     # an untrained model scores about +30 nats here; the trained one predicts simulated humans well
     assert report["nll_exact"] < -10
     assert report["nll_exact"] <= report["nll_is"] + 0.5 and report["nll_exact"] <= report["nll_naive"] + 0.5
+
+
+def test_bench_plan_reports_futures_and_seconds(capsys):
+    code, out, _ = run(capsys, "bench", "plan", "--first-stage-samples", 1, "--finalists", 4,
+                       "--second-stage-samples", 8, "--repeats", 1, "--json")
+    report = json.loads(out)
+    assert code == 0 and report["futures"] == 4096 + 4 * 8 and report["candidates"] == 4096
+    assert report["seconds"] > 0 and report["device"] in ("cpu", "cuda")
+    code, out, err = run(capsys, "bench", "plan", "--repeats", 0, "--json")
+    assert code == 2 and "--repeats must be a positive integer" in err

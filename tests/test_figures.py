@@ -87,3 +87,23 @@ def test_empty_trial_set_is_refused(trials, tmp_path):
     with pytest.raises(ValueError, match="no trials"):
         plot_trajectories(trials.subset(np.zeros(len(trials), bool)), tmp_path / "x.png")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_planner_figures(tmp_path):
+    import torch
+
+    from trafficweaving.model.cvae import CVAE
+    from trafficweaving.planning.candidates import Action
+    from trafficweaving.planning.costs import PaperCost
+    from trafficweaving.planning.planner import Budget, Planner, example_history
+    from trafficweaving.scenario import LANE_CENTRE_Y
+    from trafficweaving.viz.planning_figures import plot_candidates, plot_plan
+
+    present = example_history()[-1, 0]
+    fig4 = plot_candidates([(present, Action.of(0.0, "right").index, "right lane")], tmp_path / "fig4.png")
+    torch.manual_seed(0)
+    planner = Planner(CVAE(), Budget(1, 4, 8))
+    fig5 = plot_plan(planner, example_history(), Action.of(0.0, "right").index, PaperCost(goal_y=LANE_CENTRE_Y["left"]),
+                     tmp_path / "fig5.png", samples=8, scoring_samples=16)
+    for path in (fig4, fig5):
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 20_000

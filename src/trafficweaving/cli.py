@@ -212,6 +212,38 @@ def cmd_predict(args) -> None:
     _emit(args, {"out": str(path), "panels": len(picks)}, f"wrote {path}")
 
 
+def cmd_bench(args) -> None:
+    import statistics
+
+    import torch
+
+    from .model.checkpoint import choose_device, load_model
+    from .planning.candidates import Action
+    from .planning.costs import PaperCost
+    from .planning.planner import Budget, Planner, example_history
+    from .scenario import LANE_CENTRE_Y
+
+    if args.repeats < 1:
+        raise InputError(f"--repeats must be a positive integer, got {args.repeats}")
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    device = choose_device(args.device)
+    planner = Planner(load_model(args.model, device), Budget(args.first_stage_samples, args.finalists, args.second_stage_samples))
+    history, first = example_history(), Action.of(0.0, "right").index
+    cost = PaperCost(goal_y=LANE_CENTRE_Y["left"])
+    planner.plan(history, first, cost, deadline=args.deadline)  # warm-up: allocations, measured speed
+    plans = [planner.plan(history, first, cost, deadline=args.deadline) for _ in range(args.repeats)]
+    seconds = [p.seconds for p in plans]
+    payload = {"futures": min(p.futures for p in plans), "seconds": statistics.median(seconds),
+               "seconds_all": [round(s, 4) for s in seconds], "candidates": len(plans[0].candidates),
+               "first_stage_samples": plans[0].first_stage_samples, "finalists": len(plans[0].finalists),
+               "second_stage_samples": plans[0].second_stage_samples, "deadline": args.deadline,
+               "device": str(device), "threads": torch.get_num_threads(), "model": args.model,
+               "timings": {k: round(v, 4) for k, v in plans[-1].timings.items()}}
+    _emit(args, payload, f"plan: {payload['futures']} human futures for {payload['candidates']} candidates in "
+                         f"{payload['seconds']:.3f} s (median of {args.repeats}; {device}, {payload['threads']} threads)")
+
+
 def find_hitl_dir(explicit: str | None) -> Path | None:
     """The folder of the authors' human-in-the-loop ``.jld`` files: ``explicit`` if given, else the
     first of ``DEFAULT_HITL_DIRS`` that exists (relative to the working directory)."""
@@ -340,6 +372,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output PNG")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_predict)
+
+    p = sub.add_parser("bench", help="time the planner")
+    p.add_argument("what", choices=("plan",), help="plan: one two-stage plan at the paper's budget")
+    p.add_argument("--model", default="default")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--deadline", type=float, help="real-time mode: return within this many seconds")
+    p.add_argument("--first-stage-samples", type=int, default=16)
+    p.add_argument("--finalists", type=int, default=32)
+    p.add_argument("--second-stage-samples", type=int, default=1024)
+    p.add_argument("--threads", type=int, help="CPU threads (default: PyTorch's choice)")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("demo", help="the main job, end to end, on the shipped defaults")
     p.add_argument("--out", default="out", help="output folder (default: out)")

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..model.cvae import CVAE, HORIZON, MIN_HISTORY, STATE_DIM
-from ..scenario import DT
+from ..scenario import DT, LANE_CENTRE_Y
 from .candidates import Candidates, robot_candidates
 from .costs import Cost
 from .sampler import BatchedSampler
@@ -196,6 +196,29 @@ class Planner:
             futures=n1 * scored + used * k, seconds=time.perf_counter() - clock,
             first_stage_samples=n1, second_stage_samples=used, timings=timings)
 
+    @torch.no_grad()
+    def score(self, history: np.ndarray, first_action: int, cost: Cost, indices, samples: int) -> tuple[np.ndarray, np.ndarray]:
+        """Expected costs ``[k]`` of candidates ``indices`` (of :func:`robot_candidates` with window 0
+        fixed to ``first_action``) from ``samples`` fresh human futures each, and those futures
+        ``[samples, k, 15, 6]`` (for re-scoring a choice and for figures)."""
+        candidates = robot_candidates(np.asarray(history, float)[-1, 0], first_action)
+        self.sampler.prepare(np.asarray(history, float), candidates.states)
+        robot = torch.as_tensor(candidates.states, dtype=self.dtype, device=self.device)
+        human_present = torch.as_tensor(np.asarray(history, float)[-1, 1], dtype=self.dtype, device=self.device)
+        scores, human = self._scores(torch.as_tensor(np.asarray(indices), device=self.device), samples, robot, human_present, cost)
+        return scores.mean(0).cpu().double().numpy(), human.cpu().double().numpy()
+
     def _rate(self) -> float:
         """Measured human futures sampled and scored per second (a conservative guess before any)."""
         return self.rows_per_second or 20_000.0
+
+
+def example_history(steps: int = 10, gap: float = 2.0) -> np.ndarray:
+    """A contested situation ``[steps, 2, 6]`` for benchmarks and figures: the robot in the right
+    lane and the human in the left lane ``gap`` m ahead, both at 29 m/s, at constant speed for
+    ``steps`` steps ending about 90 m before the cutoff (both must swap lanes)."""
+    t = DT * np.arange(steps)[:, None]
+    robot = np.array([-90.0 - 29.0 * DT * (steps - 1), LANE_CENTRE_Y["right"], 29.0, 0.0, 0.0, 0.0])
+    human = robot + [gap, LANE_CENTRE_Y["left"] - LANE_CENTRE_Y["right"], 0.0, 0.0, 0.0, 0.0]
+    motion = t * np.array([29.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    return np.stack([robot + motion, human + motion], axis=1)

@@ -46,7 +46,7 @@ def _draw_road(ax, x_range: tuple[float, float], y_min: float) -> None:
         ax.axhline(y, color="0.7", lw=0.8, ls=":")
     ax.axhline(LANE_DIVIDER_Y, color="0.45", lw=1.0, ls=(0, (8, 6)))
     ax.axvline(CUTOFF_DRAWN_X, color="k", lw=1.5)
-    ax.text(CUTOFF_DRAWN_X, ROAD_EDGES_Y[0] + 0.15, "cutoff x = 0 ", va="bottom", ha="right", fontsize=8)
+    ax.text(CUTOFF_DRAWN_X, ROAD_EDGES_Y[0] + 0.15, "cutoff x = 0 ", va="bottom", ha="right", fontsize=8, clip_on=True)
     ax.set_xlim(*x_range)
     ax.set_ylim(min(ROAD_EDGES_Y[1], y_min) - 0.5, ROAD_EDGES_Y[0] + 0.8)
 
