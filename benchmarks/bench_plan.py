@@ -9,10 +9,12 @@ Measured in one run, same process, same model:
   PyTorch over the whole batch (:meth:`CVAE.sample_actions`, one call per stage);
 * ``seconds``: our planner (median of ``--repeats``); ``speedup`` and ``achieved_gflops`` (the
   decoder's matrix-multiply FLOPs per plan over the plan's time);
+* ``bfloat16_seconds``: our planner with the decoder's matrix multiplies in bfloat16;
 * real-time mode (``--deadline``, default 0.3 s) on recorded situations (simulated human–human
   trials, the other car playing the robot): how often its first free window equals the full-budget
   plan's, its expected-cost regret against the full-budget choice (both re-scored with 2048 fresh
-  samples), and, as the noise floor, the same for a second full-budget plan with another seed.
+  samples), and, as the noise floor, the same for a second full-budget plan with another seed;
+  the same two figures for full-budget plans in bfloat16.
 
     python benchmarks/bench_plan.py [--threads N] [--situations 18] [--deadline 0.3] [--model default]
 """
@@ -125,12 +127,15 @@ def main() -> None:
     ours = [planner.plan(history, first, cost).seconds for _ in range(args.repeats)]
     report["seconds"] = round(statistics.median(ours), 3)
     report["achieved_gflops"] = round(decoder_flops(model, budget.futures) / report["seconds"] / 1e9, 1)
+    fast = Planner(model, budget, matmul_dtype=torch.bfloat16)
+    fast.plan(history, first, cost)
+    report["bfloat16_seconds"] = round(statistics.median(fast.plan(history, first, cost).seconds for _ in range(args.repeats)), 3)
     if not args.skip_naive:
         report["naive_seconds"] = round(naive_plan(model, history, first, cost, budget), 3)
         report["speedup"] = round(report["naive_seconds"] / report["seconds"], 2)
     print(json.dumps(report), flush=True)
 
-    agree, regret, agree_full, regret_full, late = [], [], [], [], []
+    agree, regret, agree_full, regret_full, agree_bf16, regret_bf16, late = [], [], [], [], [], [], []
     realtime = Planner(model, budget, seed=1)
     realtime.plan(history, first, cost, deadline=args.deadline)  # warm-up: measures its speed
     for k, (hist, fixed, c) in enumerate(situations(args.situations)):
@@ -143,6 +148,9 @@ def main() -> None:
         regret.append(expected_cost(planner, hist, fixed, c, rt.index) - reference)
         agree_full.append(other.actions[1] == full.actions[1])
         regret_full.append(expected_cost(planner, hist, fixed, c, other.index) - reference)
+        low = Planner(model, budget, seed=300 + k, matmul_dtype=torch.bfloat16).plan(hist, fixed, c)
+        agree_bf16.append(low.actions[1] == full.actions[1])
+        regret_bf16.append(expected_cost(planner, hist, fixed, c, low.index) - reference)
     report["realtime"] = {
         "deadline": args.deadline, "situations": len(late), "max_seconds": round(max(late), 3),
         "within_deadline": int(sum(s <= args.deadline for s in late)),
@@ -151,6 +159,8 @@ def main() -> None:
         "regret_p90": round(float(np.percentile(regret, 90)), 2),
         "full_vs_full_agreement": round(float(np.mean(agree_full)), 3),
         "full_vs_full_regret_mean": round(float(np.mean(regret_full)), 2),
+        "bfloat16_agreement": round(float(np.mean(agree_bf16)), 3),
+        "bfloat16_regret_mean": round(float(np.mean(regret_bf16)), 2),
     }
     print(json.dumps(report))
 

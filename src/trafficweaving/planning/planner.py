@@ -36,9 +36,9 @@ class HumanSampler(Protocol):
 class CVAESampler:
     """:class:`HumanSampler` for a :class:`CVAE`, through the fast :class:`BatchedSampler`."""
 
-    def __init__(self, model: CVAE, chunk_rows: int = 2048):
+    def __init__(self, model: CVAE, chunk_rows: int = 2048, matmul_dtype: torch.dtype | None = None):
         self.model = model.eval()
-        self.batched = BatchedSampler(model, chunk_rows)
+        self.batched = BatchedSampler(model, chunk_rows, matmul_dtype)
         self.device = next(model.parameters()).device
         self.dtype = next(model.parameters()).dtype
         self.context: dict | None = None
@@ -110,8 +110,11 @@ class Planner:
     any :class:`HumanSampler`)."""
 
     def __init__(self, model: CVAE | HumanSampler, budget: Budget = Budget(), seed: int = 0,
-                 device: torch.device | str | None = None):
-        self.sampler = CVAESampler(model) if isinstance(model, CVAE) else model
+                 device: torch.device | str | None = None, matmul_dtype: torch.dtype | None = None):
+        """``matmul_dtype`` (for a CVAE): e.g. ``torch.bfloat16`` runs the decoder's matrix
+        multiplies in bfloat16 (state and gate arithmetic stay float32): faster on CPUs with
+        native bfloat16, slightly different numbers (docs/planner.md measures the decisions)."""
+        self.sampler = CVAESampler(model, matmul_dtype=matmul_dtype) if isinstance(model, CVAE) else model
         self.device = torch.device(device) if device is not None else getattr(self.sampler, "device", torch.device("cpu"))
         self.dtype = getattr(self.sampler, "dtype", torch.float32)
         self.budget = budget

@@ -39,9 +39,10 @@ class BatchedSampler:
     times, e.g. for the two planning stages on subsets of candidates).
     """
 
-    def __init__(self, model: CVAE, chunk_rows: int = 2048):
+    def __init__(self, model: CVAE, chunk_rows: int = 2048, matmul_dtype: torch.dtype | None = None):
         m, c = model.eval(), model.config
         self.model, self.chunk_rows = m, chunk_rows
+        self.matmul_dtype = matmul_dtype or next(model.parameters()).dtype
         self.components = c.components
         units = c.decoder_units
         with torch.no_grad():
@@ -60,7 +61,9 @@ class BatchedSampler:
             g = m.gmm
             head = torch.cat([g.log_pi.weight, g.mu.weight, g.log_sigma.weight, g.corr.weight]).T  # [u, 6M]
             self.head_bias = torch.cat([g.log_pi.bias, g.mu.bias, g.log_sigma.bias, g.corr.bias])
-            self.w_head = head.contiguous()
+            self.w_head = head.contiguous().to(self.matmul_dtype)
+            self.head_bias = self.head_bias.to(self.matmul_dtype)
+            self.w_step = self.w_step.to(self.matmul_dtype)
             latent_gates = m.latent_onehots @ self.w_gate_z  # [Z, 4u]
             latent_init = m.latent_onehots @ self.w_init_z  # [Z, 2u]
             self.latent_gates, self.latent_init = latent_gates, latent_init
@@ -121,10 +124,11 @@ class BatchedSampler:
                       normal: torch.Tensor) -> torch.Tensor:
         units = self.w_head.shape[0]
         rows = len(cand)
-        constant = ctx["x_gates"].index_select(0, cand) + self.latent_gates.index_select(0, z)  # [R, 4u]
+        constant = (ctx["x_gates"].index_select(0, cand) + self.latent_gates.index_select(0, z)).to(self.matmul_dtype)  # [R, 4u]
         init = torch.tanh(ctx["x_init"].index_select(0, cand) + self.latent_init.index_select(0, z))
         c = init[:, :units].contiguous()
-        step_in = torch.empty((rows, units + STATE_DIM + 2), dtype=c.dtype, device=c.device)  # [h, robot, action]
+        mixed = self.matmul_dtype != c.dtype  # matrix multiplies in lower precision, state and gates in full
+        step_in = torch.empty((rows, units + STATE_DIM + 2), dtype=self.matmul_dtype, device=c.device)  # [h, robot, action]
         step_in[:, :units] = init[:, units:]
         step_in[:, units + STATE_DIM:] = ctx["present_action"]
         h, robot, action = step_in[:, :units], step_in[:, units:units + STATE_DIM], step_in[:, units + STATE_DIM:]
@@ -134,12 +138,13 @@ class BatchedSampler:
         for k in range(HORIZON):
             robot.copy_(ctx["robot_inputs"][k].index_select(0, cand))
             gates = torch.addmm(constant, step_in, self.w_step)
+            gates = gates.float() if mixed else gates
             torch.sigmoid_(gates)  # i, f, o and σ(2j)
             c.mul_(gates[:, f]).addcmul_(gates[:, i], gates[:, j], value=2.0).sub_(gates[:, i])  # c·f + i·tanh(j)
             torch.mul(c, 2.0, out=squashed).sigmoid_().mul_(2.0).sub_(1.0)  # tanh(c)
             torch.mul(squashed, gates[:, o], out=h)
             head = torch.addmm(self.head_bias, h, self.w_head)
-            sample = self._sample_head(head, uniform[:, k], normal[:, k])
+            sample = self._sample_head(head.float() if mixed else head, uniform[:, k], normal[:, k])
             action.copy_(sample)
             actions[:, k] = sample
         return actions
