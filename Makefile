@@ -23,6 +23,7 @@ test: install
 bench: install
 	$(PY) benchmarks/bench_generate.py
 	$(PY) benchmarks/bench_train.py
+	$(PY) benchmarks/bench_plan.py
 
 clean:
 	rm -rf $(VENV) $(OUT)

@@ -11,7 +11,7 @@ from trafficweaving.planning.candidates import ACCELERATIONS, Action, action_seq
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import Budget, Planner, integrate_human
-from trafficweaving.planning.sampler import BatchedSampler
+from trafficweaving.model.sampler import BatchedSampler
 from trafficweaving.planning.steering import optimal_time, steer, steering_cost
 from trafficweaving.scenario import DT, LANE_CENTRE_Y
 

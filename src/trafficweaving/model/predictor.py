@@ -1,4 +1,4 @@
-"""Batched sampling of human futures in physical units: the model's interface to the planner.
+"""Sampling of human futures in physical units for one history and many robot futures.
 
 Given one interaction history and ``B`` candidate robot futures, :meth:`HumanPredictor.sample`
 draws ``n`` human action sequences per candidate in one batched call: the history is encoded once,
@@ -14,6 +14,7 @@ import torch
 
 from ..dynamics import integrate_trapezoid
 from .cvae import CVAE, HORIZON, MIN_HISTORY, STATE_DIM
+from .sampler import BatchedSampler
 
 
 @dataclass
@@ -37,19 +38,18 @@ def _as_array(name: str, value, shape_text: str, ndim: int, last: tuple[int, ...
 
 
 class HumanPredictor:
-    """Samples human futures from a :class:`CVAE` (evaluation mode, on the model's device)."""
+    """Samples human futures from a :class:`CVAE` (evaluation mode, on the model's device),
+    through the planner's fast batched sampler."""
 
     def __init__(self, model: CVAE):
         self.model = model.eval()
+        self.sampler = BatchedSampler(model)
         self.device = next(model.parameters()).device
         self.dtype = next(model.parameters()).dtype
 
-    def _tensor(self, array: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(array, dtype=self.dtype, device=self.device)
-
     def _features(self, states: np.ndarray) -> torch.Tensor:
         m = self.model
-        return (self._tensor(states) - m.feature_mean) / m.feature_std
+        return (torch.as_tensor(states, dtype=self.dtype, device=self.device) - m.feature_mean) / m.feature_std
 
     @torch.no_grad()
     def sample(self, history, robot_futures, n: int, seed: int | None = 0) -> Prediction:
@@ -66,34 +66,17 @@ class HumanPredictor:
             raise ValueError(f"history has {history.shape[0]} steps (expected at least {MIN_HISTORY})")
         if not isinstance(n, int) or n < 1:
             raise ValueError(f"n must be a positive integer, got {n!r}")
-        m, c = self.model, self.model.config
         generator = torch.Generator(device=self.device)
         if seed is None:
             generator.seed()
         else:
             generator.manual_seed(seed)
-
-        past = self._features(history).reshape(1, history.shape[0], 2 * STATE_DIM)
-        present = past[0, -1]
-        robot_present, human_present = present[:STATE_DIM], present[STATE_DIM:]
-        futures = self._features(robot_futures)  # [B, N, 6]
-        b = futures.shape[0]
-        history_h = m.encode_history(past, torch.tensor([history.shape[0] - 1], device=self.device))
-        robot_summary = m.encode_robot_future(futures, robot_present.expand(b, -1))
-        x = torch.cat([history_h.expand(b, -1), robot_summary], dim=-1)
-
-        logits = m.p_z_logits(x)  # [B, N_z, K_z]
-        log_p = torch.log_softmax(logits, dim=-1)
-        u = torch.rand((n, *log_p.shape), generator=generator, device=self.device, dtype=self.dtype)
-        classes = torch.argmax(log_p - torch.log(-torch.log(u.clamp_min(1e-20))), dim=-1)  # [n, B, N_z]
-        place = c.latent_classes ** torch.arange(c.latent_vars - 1, -1, -1, device=self.device)
-        latents = (classes * place).sum(-1)  # [n, B]
-        z = torch.nn.functional.one_hot(classes, c.latent_classes).flatten(2).to(self.dtype)
-
-        robot_inputs = torch.cat([robot_present.expand(b, 1, -1), futures[:, :-1]], dim=1)
-        present_action = ((self._tensor(history[-1, 1, 4:6]) - m.label_mean) / m.label_std).expand(b, -1)
-        actions = m.sample_actions(m.zx(z, x), robot_inputs, present_action, generator)
-        return Prediction(actions * m.label_std + m.label_mean, latents, m.joint_log_prob(logits))
+        m = self.model
+        context = self.sampler.encode(self._features(history).reshape(history.shape[0], 2 * STATE_DIM),
+                                      self._features(robot_futures))
+        latents = self.sampler.sample_latents(context, n, generator)
+        actions = self.sampler.sample(context, latents, generator=generator)
+        return Prediction(actions * m.label_std + m.label_mean, latents, context["log_p_joint"])
 
 
 def human_states(present: np.ndarray, actions: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ from ..model.cvae import CVAE, HORIZON, MIN_HISTORY, STATE_DIM
 from ..scenario import DT, LANE_CENTRE_Y
 from .candidates import Candidates, robot_candidates
 from .costs import Cost
-from .sampler import BatchedSampler
+from ..model.sampler import BatchedSampler
 
 
 class HumanSampler(Protocol):

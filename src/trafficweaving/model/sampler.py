@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import torch
 
-from ..model.cvae import CVAE, HORIZON, STATE_DIM
-from ..model.lstm import FORGET_BIAS
-from ..model.gmm import LOG_SIGMA_CLIP
+from .cvae import CVAE, HORIZON, STATE_DIM
+from .lstm import FORGET_BIAS
+from .gmm import LOG_SIGMA_CLIP
 
 
 def _reorder_gates(w: torch.Tensor) -> torch.Tensor:
@@ -80,8 +80,10 @@ class BatchedSampler:
         x = torch.cat([history_h.expand(c_count, -1), m.encode_robot_future(robot_futures, robot_present.expand(c_count, -1))], -1)
         robot_inputs = torch.cat([robot_present.expand(c_count, 1, -1), robot_futures[:, :-1]], dim=1)
         present_action = (human_present[4:6] * m.feature_std[4:6] + m.feature_mean[4:6] - m.label_mean) / m.label_std
+        logits = m.p_z_logits(x)
         return {
-            "log_p_z": torch.log_softmax(m.p_z_logits(x), dim=-1),  # [C, N_z, K_z]
+            "log_p_z": torch.log_softmax(logits, dim=-1),  # [C, N_z, K_z]
+            "log_p_joint": m.joint_log_prob(logits),  # [C, Z]
             "x_gates": x @ self.w_gate_x + self.gate_bias,  # [C, 4u]
             "x_init": x @ self.w_init_x + self.init_bias,  # [C, 2u]
             "robot_inputs": robot_inputs.transpose(0, 1).contiguous(),  # [15, C, 6]
