@@ -93,7 +93,7 @@ class DriverModel:
     """Gentle throttle a driver uses to regain its preferred speed, m/s²."""
     lane_offset_sd: float = 0.25
     """Spread of where in the target lane a driver ends up, m (kept off the road edges)."""
-    lateral_wander_sd: float = 0.35
+    lateral_wander_sd: float = 0.6
     """Stationary spread of lane-keeping lateral acceleration noise, m/s²."""
     pedal_noise_sd: float = 0.1
     """Spread of throttle-level jitter while a pedal is pressed, m/s²."""

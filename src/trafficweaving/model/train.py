@@ -99,11 +99,14 @@ class _Sampler:
     def __init__(self, n: int, batch_size: int, seed: int):
         self.n, self.batch_size, self.seed = n, batch_size, seed
         self.per_epoch = max(n // batch_size, 1)
+        self.epoch, self.perm = -1, None
 
     def __call__(self, step: int) -> torch.Tensor:
         epoch, k = divmod(step, self.per_epoch)
-        perm = torch.randperm(self.n, generator=torch.Generator().manual_seed(self.seed * 1_000_003 + epoch))
-        return perm[k * self.batch_size:(k + 1) * self.batch_size]
+        if epoch != self.epoch:
+            self.epoch = epoch
+            self.perm = torch.randperm(self.n, generator=torch.Generator().manual_seed(self.seed * 1_000_003 + epoch))
+        return self.perm[k * self.batch_size:(k + 1) * self.batch_size]
 
 
 @dataclass
