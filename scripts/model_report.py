@@ -1,11 +1,10 @@
-"""Write ``docs/model.md`` and its figures: the paper's Fig. 3 comparison of human-model variants
-on a held-out synthetic split and on the authors' 30 real human-in-the-loop trials, prediction
-figures and validation curves.
+"""Evaluate human models on the held-out split of a synthetic dataset and on the authors' 30 real
+human-in-the-loop trials, and write the table (``docs/<--table>``); with ``--figures`` also the
+paper's Fig. 3 for the first and last model and the validation curves (``docs/figures``).
 
-    python scripts/model_report.py --data out/train/synthetic_4000.parquet --real out/hitl.parquet \\
-        --model "cvae (shipped, 50k steps)=src/trafficweaving/model/default_cvae.pt" \\
-        --model "no-latent (10k steps)=out/variants/no-latent-10k.pt" ... \\
-        --model "authors (real human–human data)=authors:../shared/reference/authors_model/weights.npz"
+    python scripts/model_report.py --data synthetic_4000.parquet --real hitl.parquet --table model_table.md \
+        --model "cvae (shipped)=src/trafficweaving/model/default_cvae.pt" ... \
+        --model "authors=authors:../shared/reference/authors_model/weights.npz" --figures
 
 The held-out split is the validation split ``trafficweaving train`` makes of ``--data`` (80/20 by
 trial, seed 0). Every number is measured in this run.
@@ -19,14 +18,13 @@ from pathlib import Path
 
 import torch
 
+from trafficweaving.cli import DEMO_REAL_PICKS
 from trafficweaving.data.trials import load_trials
 from trafficweaving.model.checkpoint import load_model, read_checkpoint
 from trafficweaving.model.evaluate import evaluate
 from trafficweaving.model.exemplars import build_exemplars, split_by_trial
 from trafficweaving.model.train import TrainConfig
 from trafficweaving.viz.model_figures import plot_predictions, plot_validation_curves
-
-REAL_PICKS = [(2, 1, 10), (7, 1, 20), (12, 1, 25)]  # (trial, human agent, t): early, mid and late in a swap
 
 
 def main() -> None:
@@ -35,6 +33,8 @@ def main() -> None:
     parser.add_argument("--real", required=True, help="imported real trials (trafficweaving import hitl)")
     parser.add_argument("--model", action="append", required=True, metavar="NAME=SPEC")
     parser.add_argument("--out", default="docs")
+    parser.add_argument("--table", default="model_table.md", help="file name of the table, in --out")
+    parser.add_argument("--figures", action="store_true", help="also draw Fig. 3 and the validation curves")
     args = parser.parse_args()
     out = Path(args.out)
 
@@ -58,20 +58,21 @@ def main() -> None:
         rows.append(f"| {name} | {model.config.latent_vars} × {model.config.latent_classes} | {model.config.components} | {steps} | "
                     + " | ".join(fmt(r[k]) for r in (on_synthetic, on_real) for k in ("nll_exact", "nll_is", "nll_naive")) + " |")
 
-    figures = out / "figures"
-    default_name, default_spec = args.model[0].split("=", 1)
-    plot_validation_curves(curves, figures / "validation_curves.png")
-    for name, spec in (args.model[0].split("=", 1), args.model[-1].split("=", 1)):
-        slug = "authors" if spec.startswith("authors:") else "default"
-        plot_predictions(load_model(spec), real, REAL_PICKS, figures / f"fig3_real_{slug}.png", title=f"{name} on real trials")
-    syn_picks = [(i, 0, min(t, int(held_trials.lengths[i]) - 16)) for i, t in ((0, 12), (1, 22))]
-    plot_predictions(load_model(default_spec), held_trials, syn_picks, figures / "fig3_synthetic_default.png",
-                     title=f"{default_name} on held-out synthetic trials")
+    if args.figures:
+        figures = out / "figures"
+        default_name, default_spec = args.model[0].split("=", 1)
+        plot_validation_curves(curves, figures / "validation_curves.png")
+        for name, spec in (args.model[0].split("=", 1), args.model[-1].split("=", 1)):
+            slug = "authors" if spec.startswith("authors:") else "default"
+            plot_predictions(load_model(spec), real, DEMO_REAL_PICKS, figures / f"fig3_real_{slug}.png", title=f"{name} on real trials")
+        syn_picks = [(i, 0, min(t, int(held_trials.lengths[i]) - 16)) for i, t in ((0, 12), (1, 22))]
+        plot_predictions(load_model(default_spec), held_trials, syn_picks, figures / "fig3_synthetic_default.png",
+                         title=f"{default_name} on held-out synthetic trials")
 
     lines = [
-        "# The human model: variants and evaluation",
+        f"# Human models evaluated: held-out trials of `{Path(args.data).name}` and the real trials",
         "",
-        "Made by `python scripts/model_report.py` (command in docs/model.md's *Reproduce* section); numbers from its last run.",
+        f"Made by `python scripts/model_report.py --data {args.data} ...` (the full command is in docs/model.md); numbers from its last run.",
         "",
         "NLL: nats per prediction instance for the human's next 15 accelerations `[xdd, ydd]` in m/s² "
         "(lower is better): exact (all latent values), importance-sampled with q (50 samples), naive with p (50 samples). "
@@ -83,7 +84,7 @@ def main() -> None:
         *rows,
         "",
     ]
-    (out / "model_table.md").write_text("\n".join(lines) + "\n")
+    (out / args.table).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

@@ -229,7 +229,7 @@ def cmd_bench(args) -> None:
         torch.set_num_threads(args.threads)
     device = choose_device(args.device)
     planner = Planner(load_model(args.model, device), Budget(args.first_stage_samples, args.finalists, args.second_stage_samples),
-                      matmul_dtype=getattr(torch, args.precision))
+                      precision=args.precision)
     history, first = example_history(), Action.of(0.0, "right").index
     cost = PaperCost(goal_y=LANE_CENTRE_Y["left"])
     planner.plan(history, first, cost, deadline=args.deadline)  # warm-up: allocations, measured speed
@@ -239,7 +239,8 @@ def cmd_bench(args) -> None:
                "seconds_all": [round(s, 4) for s in seconds], "candidates": len(plans[0].candidates),
                "first_stage_samples": plans[0].first_stage_samples, "finalists": len(plans[0].finalists),
                "second_stage_samples": plans[0].second_stage_samples, "deadline": args.deadline,
-               "device": str(device), "threads": torch.get_num_threads(), "model": args.model, "precision": args.precision,
+               "device": str(device), "threads": torch.get_num_threads(), "model": args.model,
+               "precision": str(planner.sampler.batched.matmul_dtype).removeprefix("torch."),
                "timings": {k: round(v, 4) for k, v in plans[-1].timings.items()}}
     _emit(args, payload, f"plan: {payload['futures']} human futures for {payload['candidates']} candidates in "
                          f"{payload['seconds']:.3f} s (median of {args.repeats}; {device}, {payload['threads']} threads)")
@@ -288,6 +289,24 @@ def cmd_demo(args) -> None:
     for path in write_figures(trials, out / "figures", reference):
         print(f"wrote {path}")
     _demo_human_model(trials, reference, out / "figures")
+    _demo_planner(out / "figures")
+
+
+def _demo_planner(figures: Path) -> None:
+    """One full-budget plan with the shipped model, drawn beside braking and accelerating alternatives."""
+    from .model.checkpoint import load_model
+    from .planning.candidates import Action
+    from .planning.costs import PaperCost
+    from .planning.planner import Planner, example_history
+    from .scenario import LANE_CENTRE_Y
+    from .viz.planning_figures import plot_plan
+
+    planner = Planner(load_model("default"))
+    path = plot_plan(planner, example_history(), Action.of(0.0, "right").index, PaperCost(goal_y=LANE_CENTRE_Y["left"]),
+                     figures / "plan.png")
+    print(f"\nplanned against {planner.budget.futures} sampled human futures "
+          f"(4096 candidates × {planner.budget.first_stage_samples}, best {planner.budget.finalists} × "
+          f"{planner.budget.second_stage_samples}); wrote {path}")
 
 
 def _demo_human_model(trials, reference, figures: Path) -> None:
@@ -382,8 +401,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--first-stage-samples", type=int, default=16)
     p.add_argument("--finalists", type=int, default=32)
     p.add_argument("--second-stage-samples", type=int, default=1024)
-    p.add_argument("--precision", choices=("float32", "bfloat16"), default="float32",
-                   help="decoder matrix multiplies (bfloat16: faster on CPUs with native bfloat16)")
+    p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto",
+                   help="decoder matrix multiplies; auto: bfloat16 on CPUs with native bfloat16, else float32")
     p.add_argument("--threads", type=int, help="CPU threads (default: PyTorch's choice)")
     p.add_argument("--device", default="auto")
     p.add_argument("--json", action="store_true")

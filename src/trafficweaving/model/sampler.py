@@ -59,8 +59,15 @@ class BatchedSampler:
             self.w_init_z, self.w_init_x = w_init[:nz], w_init[nz:]
             self.init_bias = torch.cat([init.initial_c.bias, init.initial_h.bias])
             g = m.gmm
-            head = torch.cat([g.log_pi.weight, g.mu.weight, g.log_sigma.weight, g.corr.weight]).T  # [u, 6M]
-            self.head_bias = torch.cat([g.log_pi.bias, g.mu.bias, g.log_sigma.bias, g.corr.bias])
+            # head columns: log_pi (M), then per component (mu_x, mu_y, log_sigma_x, log_sigma_y, corr)
+            m_count = c.components
+            per_component = torch.stack([torch.arange(m_count) * 2 + m_count, torch.arange(m_count) * 2 + m_count + 1,
+                                         torch.arange(m_count) * 2 + 3 * m_count, torch.arange(m_count) * 2 + 3 * m_count + 1,
+                                         torch.arange(m_count) + 5 * m_count], dim=1).flatten()
+            order = torch.cat([torch.arange(m_count), per_component])
+            head = torch.cat([g.log_pi.weight, g.mu.weight, g.log_sigma.weight, g.corr.weight]).T[:, order]  # [u, 6M]
+            self.head_bias = torch.cat([g.log_pi.bias, g.mu.bias, g.log_sigma.bias, g.corr.bias])[order]
+            self.param_offsets = (m_count + torch.arange(5)).unsqueeze(0)
             self.w_head = head.contiguous().to(self.matmul_dtype)
             self.head_bias = self.head_bias.to(self.matmul_dtype)
             self.w_step = self.w_step.to(self.matmul_dtype)
@@ -134,31 +141,35 @@ class BatchedSampler:
         step_in[:, :units] = init[:, units:]
         step_in[:, units + STATE_DIM:] = ctx["present_action"]
         h, robot, action = step_in[:, :units], step_in[:, units:units + STATE_DIM], step_in[:, units + STATE_DIM:]
+        robot_steps = ctx["robot_inputs"].index_select(1, cand)  # [N, R, 6]
+        uniform, normal = uniform.T.contiguous(), normal.transpose(0, 1).contiguous()  # [N, R], [N, R, 2]
+        offsets = self.param_offsets.to(cand.device)
         i, f, o, j = (slice(k * units, (k + 1) * units) for k in range(4))
         squashed = torch.empty_like(c)
-        actions = torch.empty((rows, HORIZON, 2), dtype=c.dtype, device=c.device)
+        actions = torch.empty((HORIZON, rows, 2), dtype=c.dtype, device=c.device)
         for k in range(HORIZON):
-            robot.copy_(ctx["robot_inputs"][k].index_select(0, cand))
+            robot.copy_(robot_steps[k])
             gates = torch.addmm(constant, step_in, self.w_step)
-            gates = gates.float() if mixed else gates
+            gates = gates.to(c.dtype) if mixed else gates
             torch.sigmoid_(gates)  # i, f, o and σ(2j)
             c.mul_(gates[:, f]).addcmul_(gates[:, i], gates[:, j], value=2.0).sub_(gates[:, i])  # c·f + i·tanh(j)
             torch.mul(c, 2.0, out=squashed).sigmoid_().mul_(2.0).sub_(1.0)  # tanh(c)
             torch.mul(squashed, gates[:, o], out=h)
             head = torch.addmm(self.head_bias, h, self.w_head)
-            sample = self._sample_head(head.float() if mixed else head, uniform[:, k], normal[:, k])
-            action.copy_(sample)
-            actions[:, k] = sample
-        return actions
+            self._sample_head(head.to(c.dtype) if mixed else head, uniform[k], normal[k], offsets, actions[k])
+            action.copy_(actions[k])
+        return actions.transpose(0, 1)
 
-    def _sample_head(self, head: torch.Tensor, uniform: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    def _sample_head(self, head: torch.Tensor, uniform: torch.Tensor, normal: torch.Tensor, offsets: torch.Tensor,
+                     out: torch.Tensor) -> None:
+        """Draw one action per row into ``out [R, 2]`` from mixture parameters ``head [R, 6M]``,
+        uniforms ``[R]`` (component, inverse CDF) and normals ``[R, 2]``."""
         m_count = self.components
         cdf = torch.softmax(head[:, :m_count], dim=-1).cumsum_(-1)
         k = (cdf < uniform.unsqueeze(-1)).sum(-1, keepdim=True).clamp_(max=m_count - 1)  # [R, 1]
-        pair = torch.cat([2 * k, 2 * k + 1], dim=1)
-        mu = head[:, m_count:3 * m_count].gather(1, pair)
-        sigma = head[:, 3 * m_count:5 * m_count].gather(1, pair).clamp_(-LOG_SIGMA_CLIP, LOG_SIGMA_CLIP).exp_()
-        corr = torch.tanh(head[:, 5 * m_count:].gather(1, k))
-        e0, e1 = normal[:, :1], normal[:, 1:]
-        second = corr * e0 + torch.sqrt(1.0 - corr * corr) * e1
-        return mu + sigma * torch.cat([e0, second], dim=1)
+        params = head.gather(1, 5 * k + offsets)  # [R, 5]: mu_x, mu_y, log_sigma_x, log_sigma_y, corr
+        sigma = params[:, 2:4].clamp(-LOG_SIGMA_CLIP, LOG_SIGMA_CLIP).exp_()
+        corr = torch.tanh(params[:, 4:5])
+        correlated = normal.clone()
+        correlated[:, 1:].mul_(torch.sqrt(1.0 - corr * corr)).addcmul_(corr, normal[:, :1])
+        torch.addcmul(params[:, :2], sigma, correlated, out=out)
