@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..dynamics import integrate_trapezoid
+from ..scenario import DT
 from .cvae import CVAE, HORIZON, MIN_HISTORY, STATE_DIM
 from .sampler import BatchedSampler
 
@@ -45,11 +45,6 @@ class HumanPredictor:
         self.model = model.eval()
         self.sampler = BatchedSampler(model)
         self.device = next(model.parameters()).device
-        self.dtype = next(model.parameters()).dtype
-
-    def _features(self, states: np.ndarray) -> torch.Tensor:
-        m = self.model
-        return (torch.as_tensor(states, dtype=self.dtype, device=self.device) - m.feature_mean) / m.feature_std
 
     @torch.no_grad()
     def sample(self, history, robot_futures, n: int, seed: int | None = 0) -> Prediction:
@@ -72,21 +67,18 @@ class HumanPredictor:
         else:
             generator.manual_seed(seed)
         m = self.model
-        context = self.sampler.encode(self._features(history).reshape(history.shape[0], 2 * STATE_DIM),
-                                      self._features(robot_futures))
+        context = self.sampler.encode_states(history, robot_futures)
         latents = self.sampler.sample_latents(context, n, generator)
         actions = self.sampler.sample(context, latents, generator=generator)
         return Prediction(actions * m.label_std + m.label_mean, latents, context["log_p_joint"])
 
 
-def human_states(present: np.ndarray, actions: np.ndarray) -> np.ndarray:
+def human_states(present: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
     """Human states ``[..., 15, 6]`` at steps t+1..t+15 from its present state ``present [6]`` and
-    sampled accelerations ``actions [..., 15, 2]`` (m/s²), by trapezoid integration (as recorded
+    sampled accelerations ``actions [..., 15, 2]`` (m/s²), by the trapezoid rule (as recorded
     human cars move)."""
-    actions = np.asarray(actions, dtype=np.float64)
-    states = np.empty((*actions.shape[:-1], 6))
-    for axis in (0, 1):  # x then y
-        acc = np.concatenate([np.broadcast_to(present[4 + axis], actions.shape[:-2] + (1,)), actions[..., axis]], axis=-1)
-        p, v = integrate_trapezoid(np.full(actions.shape[:-2], present[axis]), np.full(actions.shape[:-2], present[2 + axis]), acc)
-        states[..., axis], states[..., 2 + axis], states[..., 4 + axis] = p[..., 1:], v[..., 1:], acc[..., 1:]
-    return states
+    acc = torch.cat([present[4:6].expand(*actions.shape[:-2], 1, 2), actions], dim=-2)  # [..., 16, 2]
+    vel = present[2:4] + DT * torch.cumsum(0.5 * (acc[..., 1:, :] + acc[..., :-1, :]), dim=-2)
+    vel_all = torch.cat([present[2:4].expand(*actions.shape[:-2], 1, 2), vel], dim=-2)
+    pos = present[0:2] + DT * torch.cumsum(0.5 * (vel_all[..., 1:, :] + vel_all[..., :-1, :]), dim=-2)
+    return torch.stack([pos[..., 0], pos[..., 1], vel[..., 0], vel[..., 1], actions[..., 0], actions[..., 1]], dim=-1)

@@ -75,6 +75,14 @@ class BatchedSampler:
             latent_init = m.latent_onehots @ self.w_init_z  # [Z, 2u]
             self.latent_gates, self.latent_init = latent_gates, latent_init
 
+    def encode_states(self, history, robot_futures) -> dict:
+        """:meth:`encode` from physical states: ``history [t+1, 2, 6]`` (robot, human) and
+        ``robot_futures [C, 15, 6]`` (arrays or tensors), standardised with the model's statistics."""
+        m = self.model
+        weights = m.feature_mean
+        standardise = lambda a: (torch.as_tensor(a, dtype=weights.dtype, device=weights.device) - m.feature_mean) / m.feature_std  # noqa: E731
+        return self.encode(standardise(history).reshape(len(history), 2 * STATE_DIM), standardise(robot_futures))
+
     @torch.no_grad()
     def encode(self, history: torch.Tensor, robot_futures: torch.Tensor) -> dict:
         """Per-candidate parts of the decoder for standardised ``history [t+1, 12]`` (robot, human)

@@ -24,7 +24,7 @@ from ..errors import InputError
 from .checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .cvae import CVAE, Batch, CVAEConfig
 from .evaluate import evaluate_tensors
-from .exemplars import ExemplarSet, ExemplarTensors, Standardisation, build_exemplars, split_by_trial
+from .exemplars import ExemplarSet, Standardisation, build_exemplars, split_by_trial
 
 
 @dataclass(frozen=True)

@@ -10,18 +10,19 @@ time.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 import torch
 
 from ..model.cvae import CVAE, HORIZON, MIN_HISTORY, STATE_DIM
+from ..model.predictor import human_states
+from ..model.sampler import BatchedSampler
 from ..scenario import DT, LANE_CENTRE_Y
 from .candidates import Candidates, robot_candidates
 from .costs import Cost
-from ..model.sampler import BatchedSampler
 
 
 def native_bfloat16(device: torch.device | str = "cpu") -> bool:
@@ -63,13 +64,8 @@ class CVAESampler:
         self.dtype = next(model.parameters()).dtype
         self.context: dict | None = None
 
-    def _standardise(self, states: np.ndarray) -> torch.Tensor:
-        m = self.model
-        return (torch.as_tensor(states, dtype=self.dtype, device=self.device) - m.feature_mean) / m.feature_std
-
     def prepare(self, history: np.ndarray, robot_futures: np.ndarray) -> None:
-        self.context = self.batched.encode(self._standardise(history).reshape(len(history), 2 * STATE_DIM),
-                                           self._standardise(robot_futures))
+        self.context = self.batched.encode_states(history, robot_futures)
 
     def sample(self, candidates: torch.Tensor, n: int, generator: torch.Generator) -> torch.Tensor:
         latents = self.batched.sample_latents(self.context, n, generator, candidates)
@@ -115,16 +111,6 @@ class Plan:
     timings: dict = field(default_factory=dict)
 
 
-def integrate_human(present: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-    """Human states ``[..., 15, 6]`` from ``present [6]`` and accelerations ``actions [..., 15, 2]``
-    (m/s²) by the trapezoid rule, as recorded human cars move."""
-    acc = torch.cat([present[4:6].expand(*actions.shape[:-2], 1, 2), actions], dim=-2)  # [..., 16, 2]
-    vel = present[2:4] + DT * torch.cumsum(0.5 * (acc[..., 1:, :] + acc[..., :-1, :]), dim=-2)
-    vel_all = torch.cat([present[2:4].expand(*actions.shape[:-2], 1, 2), vel], dim=-2)
-    pos = present[0:2] + DT * torch.cumsum(0.5 * (vel_all[..., 1:, :] + vel_all[..., :-1, :]), dim=-2)
-    return torch.stack([pos[..., 0], pos[..., 1], vel[..., 0], vel[..., 1], actions[..., 0], actions[..., 1]], dim=-1)
-
-
 class Planner:
     """Plans robot action sequences against a human model (a :class:`CVAE`, on its device, or
     any :class:`HumanSampler`)."""
@@ -151,7 +137,7 @@ class Planner:
         """Costs ``[n, len(cand)]`` of ``n`` sampled human futures for candidates ``cand``, and those futures."""
         start = time.perf_counter()
         actions = self.sampler.sample(cand, n, self.generator)
-        human = integrate_human(human_present, actions.to(self.dtype))  # [n, C', 15, 6]
+        human = human_states(human_present, actions.to(self.dtype))  # [n, C', 15, 6]
         scores = cost(robot[cand].unsqueeze(0), human)
         rate = n * len(cand) / max(time.perf_counter() - start, 1e-6)
         self.rows_per_second = rate if self.rows_per_second is None else 0.7 * self.rows_per_second + 0.3 * rate

@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+import torch
 from matplotlib import colormaps
 from matplotlib.figure import Figure
 
@@ -31,7 +32,7 @@ def plot_predictions(model: CVAE, trials: TrialSet, picks: list[tuple[int, int, 
             raise ValueError(f"t = {t} is outside 4..{len(human) - 1 - HORIZON} for trial {i}")
         history = np.stack([robot[: t + 1], human[: t + 1]], axis=1)
         prediction = predictor.sample(history, robot[None, t + 1:t + 1 + HORIZON], samples, seed)
-        futures = human_states(human[t], prediction.actions[:, 0].double().cpu().numpy())  # [n, 15, 6]
+        futures = human_states(torch.as_tensor(human[t]), prediction.actions[:, 0].double().cpu()).numpy()  # [n, 15, 6]
         latents = prediction.latents[:, 0].cpu().numpy()
         x_ahead = np.concatenate([robot[t:t + 1 + HORIZON, 0], human[t:t + 1 + HORIZON, 0], futures[..., 0].ravel()])
         # the last 2 s of history and everything predicted
