@@ -41,7 +41,7 @@ def main() -> None:
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
 
     def step(s: int, one_at_a_time: bool) -> None:
-        batch = _noisy(data.batch(sampler(s)), tc.input_noise)
+        batch = _noisy(data.batch(sampler(s)), tc.input_noise, tc.input_noise)
         optimizer.zero_grad(set_to_none=True)
         if one_at_a_time:
             for k in range(len(batch)):

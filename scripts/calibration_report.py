@@ -29,6 +29,15 @@ def cell_name(dv: str, k: str) -> str:
     return f"Δv={int(dv):+d}, " + ("all tco" if k == "all" else f"tco={k} s")
 
 
+def hold_row(direction: str, comparison: dict, sim: dict, real: dict) -> str:
+    """A Markdown row of the hold statistics of one direction (``long`` or ``lat``)."""
+    held = comparison[f"{direction}_hold"]
+    runs = [sim[f"{direction}_hold_run"], real[f"{direction}_hold_run"]]
+    cell = lambda f: " / ".join(f"{f(r):.3g}" for r in runs)  # noqa: E731
+    return (f"| {direction} | {100 * held['sim']['mean']:.1f} % / {100 * held['real']['mean']:.1f} % | "
+            f"{cell(np.median)} | {cell(lambda r: np.percentile(r, 90))} | {cell(np.max)} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hitl", default="../shared/reference/hitl")
@@ -43,7 +52,8 @@ def main() -> None:
     seeds = [table1(generate_trials(1105, seed=s)[0])["table1"] for s in range(10)]
     large = table1(generate_trials(20000, seed=100)[0])["table1"]
     reference = read_hitl(sorted(Path(args.hitl).glob("*.jld")))
-    comparison = compare_behaviour(behaviour_samples(trials), behaviour_samples(reference))
+    sim_samples, real_samples = behaviour_samples(trials), behaviour_samples(reference)
+    comparison = compare_behaviour(sim_samples, real_samples)
     write_figures(trials, out / "figures", reference)
 
     pp = lambda v: f"{100 * v:.1f}"  # noqa: E731
@@ -89,6 +99,18 @@ def main() -> None:
         "W: 1-D Wasserstein distance; W / std real: the same in units of the real sample's spread.",
         "",
         format_comparison(comparison),
+        "",
+        "Intermittent control: `long_hold` / `lat_hold` are 1 when the acceleration changes by less than "
+        "0.01 m/s² between consecutive steps (their mean is the fraction of held steps), `*_hold_run` the "
+        "lengths of the runs of held steps. Lane-change timing comes from `lane_change_events`: "
+        "`lane_change_sideways_time` runs from the last step with at most 0.2 m/s of sideways speed towards "
+        "the target lane to the divider crossing, `lane_change_duration` from there to arriving within 0.4 m "
+        "of the target lane's centre (recorded lane changes only); `long_accel_abs_near_crossing` is each "
+        "driver's mean |ẍ| from 2.5 s before to 0.5 s after its crossing.",
+        "",
+        "| direction | held steps sim / real | run p50 sim / real | run p90 sim / real | run max sim / real |",
+        "|---|---|---|---|---|",
+        *[hold_row(direction, comparison, sim_samples, real_samples) for direction in ("long", "lat")],
         "",
         "![behaviour](figures/behaviour_vs_reference.png)",
         "",

@@ -15,7 +15,7 @@ from trafficweaving.data.hitl import read_hitl
 from trafficweaving.model.cvae import CVAE, VARIANTS, CVAEConfig
 from trafficweaving.model.evaluate import evaluate, model_standardisation
 from trafficweaving.model.exemplars import Standardisation, build_exemplars, split_by_trial
-from trafficweaving.model.gmm import GMM
+from trafficweaving.model.gmm import GMM, HoldMixture
 from trafficweaving.model.predictor import HumanPredictor
 
 SHARED = Path(os.environ.get("TRAFFICWEAVING_SHARED", Path(__file__).resolve().parents[2] / "shared")) / "reference"
@@ -100,9 +100,9 @@ def test_every_variant_gives_normalised_latents_and_finite_likelihoods(variant, 
 
 
 def test_variant_names_round_trip():
-    for name, (n_z, k_z, m) in VARIANTS.items():
+    for name, (n_z, k_z, m, hold) in VARIANTS.items():
         c = CVAEConfig.variant(name)
-        assert (c.latent_vars, c.latent_classes, c.components, c.name) == (n_z, k_z, m, name)
+        assert (c.latent_vars, c.latent_classes, c.components, c.hold, c.name) == (n_z, k_z, m, hold, name)
     assert CVAEConfig().latent_values == 25 and CVAEConfig().x_size == 160
     with pytest.raises(ValueError, match="unknown variant"):
         CVAEConfig.variant("transformer")
@@ -153,6 +153,50 @@ def test_gmm_samples_have_the_mixture_mean_and_covariance():
                           + np.outer(mu[k], mu[k])) for k in range(2))
     np.testing.assert_allclose(draws.mean(0), mean, atol=0.01)
     np.testing.assert_allclose(np.cov(draws.T), second - np.outer(mean, mean), atol=0.02)
+
+
+def _toy_hold(batch: int = 1, previous=(0.4, -0.3)):
+    gmm = _toy_gmm()
+    return HoldMixture(log_w=torch.log(torch.tensor([[0.4, 0.25, 0.15, 0.2]], dtype=torch.float64)).expand(batch, 4),
+                       log_s=torch.log(torch.tensor([0.05, 0.08], dtype=torch.float64)),
+                       previous=torch.tensor([previous], dtype=torch.float64).expand(batch, 2),
+                       gmm=GMM(*(v.expand(batch, *v.shape[1:]) for v in (gmm.log_pi, gmm.mu, gmm.log_sigma, gmm.corr))))
+
+
+def test_hold_mixture_marginals_integrate_to_one_and_agree_with_the_joint():
+    hold = _toy_hold()
+    grid = torch.linspace(-12, 12, 240_001, dtype=torch.float64)
+    for dim in (0, 1):
+        y = torch.zeros(len(grid), 2, dtype=torch.float64)
+        y[:, dim] = grid
+        density = hold.marginal_log_prob(y, dim).exp()
+        assert torch.trapezoid(density, grid).item() == pytest.approx(1.0, abs=1e-6)
+    for x in (-1.0, 0.4, 0.43, 2.0):  # ∫ p(x, y) dy is the longitudinal marginal at x
+        y = torch.stack([torch.full_like(grid, x), grid], dim=-1)
+        joint = torch.trapezoid(hold.log_prob(y).exp(), grid).item()
+        assert joint == pytest.approx(hold.marginal_log_prob(y[:1], 0).exp().item(), rel=1e-6)
+
+
+def test_hold_mixture_samples_hold_with_the_mode_weights():
+    from scipy.stats import norm
+
+    n, previous, window = 200_000, np.array([0.4, -0.3]), np.array([0.2, 0.32])  # ±4 hold widths
+    draws = _toy_hold(n).sample(torch.Generator().manual_seed(0)).numpy()
+    near = np.abs(draws - previous) < window
+    gmm = _toy_gmm()
+    pi, mu, s = gmm.log_pi[0].exp().numpy(), gmm.mu[0].numpy(), gmm.log_sigma[0].exp().numpy()
+    gmm_near = (pi[:, None] * (norm.cdf((previous + window - mu) / s) - norm.cdf((previous - window - mu) / s))).sum(0)
+    inside = norm.cdf(4.0) - norm.cdf(-4.0)
+    # P(near in x) = P(mode holds x)·inside + P(mode draws x from the GMM)·P_GMM(near in x)
+    expected = np.array([0.45 * inside + 0.55 * gmm_near[0], 0.35 * inside + 0.65 * gmm_near[1]])
+    np.testing.assert_allclose(near.mean(0), expected, atol=0.004)
+    # the mode that holds only x draws the lateral action from the GMM's marginal, independently
+    only_x = _toy_hold(n)
+    only_x.log_w = torch.log(torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=torch.float64)).expand(n, 4)
+    draws = only_x.sample(torch.Generator().manual_seed(1)).numpy()
+    assert abs(np.corrcoef(draws[:, 0], draws[:, 1])[0, 1]) < 0.01
+    assert draws[:, 0].std() == pytest.approx(0.05, rel=0.01)
+    np.testing.assert_allclose(draws[:, 1].mean(), (pi * mu[:, 1]).sum(), atol=0.01)
 
 
 # ---------------------------------------------------------------- the authors' model

@@ -158,7 +158,7 @@ def test_human_integration_is_the_trapezoid_rule():
 
 
 # ---------------------------------------------------------------- fast sampler
-@pytest.mark.parametrize("variant", ["cvae", "mixture-lstm", "lstm"])
+@pytest.mark.parametrize("variant", ["cvae", "mixture-lstm", "lstm", "cvae-hold"])
 def test_fast_sampler_equals_the_models_sampling_given_the_same_random_numbers(variant):
     torch.manual_seed(0)
     model = CVAE(CVAEConfig.variant(variant)).double().eval()

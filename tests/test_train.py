@@ -119,3 +119,114 @@ def test_resume_needs_a_training_checkpoint(trials, tmp_path):
     save_checkpoint(tmp_path / "export.pt", CVAE())
     with pytest.raises(InputError, match="not a training checkpoint"):
         train(trials, tmp_path / "x.pt", tc=QUICK, resume=tmp_path / "export.pt", progress=False, log=lambda _: None)
+
+
+# ---------------------------------------------------------------- fine-tuning and cross-validation
+@pytest.fixture(scope="module")
+def pretrained(trials, tmp_path_factory):
+    path = tmp_path_factory.mktemp("init") / "hold.pt"
+    train(trials, path, "cvae-hold", QUICK, progress=False, log=lambda _: None)
+    return path
+
+
+def test_fine_tuning_keeps_the_models_standardisation_and_records_its_origin(pretrained, tmp_path):
+    from dataclasses import replace
+
+    other, _ = generate_trials(12, seed=9, progress=False)
+    out = tmp_path / "tuned.pt"
+    result = train(other, out, None, replace(QUICK, lr_initial=1e-4), init=pretrained, progress=False, log=lambda _: None)
+    initial, init_payload = load_checkpoint(pretrained)
+    tuned, payload = load_checkpoint(out)
+    assert tuned.config.name == "cvae-hold"
+    for name in ("feature_mean", "feature_std", "label_mean", "label_std"):
+        torch.testing.assert_close(getattr(tuned, name), getattr(initial, name))
+    assert payload["init"]["data_fingerprint"] == init_payload["data_fingerprint"] != payload["data_fingerprint"]
+    assert payload["init"]["step"] == init_payload["step"] == 6
+    assert payload["train_config"]["schedule_start"] == 6  # KL weight and temperature continue from the init
+    assert any(not torch.equal(a, b) for a, b in zip(tuned.parameters(), initial.parameters()))
+    assert result.step == 6
+
+
+def test_fine_tuning_refuses_another_variant_or_data_in_other_units(pretrained, trials, tmp_path):
+    with pytest.raises(InputError, match="a cvae-hold model, but --variant cvae"):
+        train(trials, tmp_path / "a.pt", "cvae", QUICK, init=pretrained, progress=False, log=lambda _: None)
+    feet = trials.subset(np.arange(len(trials)))
+    feet.states[..., :4] *= 3.28  # positions and speeds in feet
+    with pytest.raises(InputError, match="standardisation does not fit the data"):
+        train(feet, tmp_path / "b.pt", None, QUICK, init=pretrained, progress=False, log=lambda _: None)
+    with pytest.raises(InputError, match="no such file"):
+        train(trials, tmp_path / "c.pt", None, QUICK, init=tmp_path / "missing.pt", progress=False, log=lambda _: None)
+
+
+def test_early_stopping_keeps_the_best_weights(pretrained, trials, tmp_path):
+    from dataclasses import replace
+
+    tc = replace(QUICK, steps=40, validate_every=2, checkpoint_every=2, lr_initial=0.01, lr_final=0.01, patience=2,
+                 validation_exemplars=10**6)
+    result = train(trials, tmp_path / "s.pt", None, tc, init=pretrained, progress=False, log=lambda _: None)
+    steps, values = zip(*result.history)
+    best = int(np.argmin(values))
+    assert result.best_step == steps[best] == result.step
+    assert steps[-1] == steps[best] + 2 * 2 < 40  # stopped after `patience` validations without improvement
+    model, _ = load_checkpoint(tmp_path / "s.pt")
+    ex = build_exemplars(trials.subset(split_val(trials)))
+    assert evaluate(model, ex).nll_exact.mean() == pytest.approx(values[best], rel=1e-4)
+
+
+def split_val(trials):
+    from trafficweaving.model.exemplars import split_by_trial
+
+    return split_by_trial(len(trials), QUICK.validation_fraction, QUICK.seed)[1]
+
+
+def test_folds_partition_the_trials():
+    from trafficweaving.model.crossval import fold_assignment
+
+    folds = fold_assignment(23, 5, seed=1)
+    assert sorted(np.concatenate(folds).tolist()) == list(range(23))
+    assert [len(f) for f in folds] == [5, 5, 5, 4, 4]
+
+
+def test_crossval_chooses_steps_by_the_mean_curve_and_nests_the_choice():
+    from trafficweaving.model.crossval import CrossvalResult
+
+    curves = np.array([[0.0, -2.0, -1.0], [0.0, -1.0, -3.0], [0.0, -2.5, -1.0]])
+    result = CrossvalResult([np.arange(2)] * 3, np.array([0, 50, 100]), curves, np.array([10, 10, 10]),
+                            np.array([-1.0, -2.0, -3.0]), "ref")
+    summary = result.summary()
+    assert summary["steps"] == 50 and summary["folds"] == [-2.0, -1.0, -2.5]  # mean curve 0, -1.83, -1.67
+    # without fold 1 the others' mean curve is (0, -1.75, -2.0): 100 steps, where fold 1 scores -1.0;
+    # without fold 2: (0, -2.25, -1.0), 50 steps; without fold 3: (0, -1.5, -2.0), 100 steps
+    assert summary["nested"]["steps"] == [100, 50, 100]
+    assert summary["nested"]["folds"] == [-1.0, -1.0, -1.0]
+    assert summary["reference"] == {"model": "ref", "folds": [-1.0, -2.0, -3.0], "nll_exact": -2.0}
+
+
+def test_crossval_fine_tunes_each_fold_and_scores_the_reference(pretrained, trials, tmp_path):
+    from dataclasses import replace
+
+    from trafficweaving.model.crossval import crossval, out_of_fold_models
+
+    tc = replace(QUICK, steps=4, validate_every=2, lr_initial=1e-4)
+    nine = trials.subset(np.arange(9))
+    result = crossval(nine, 3, tc, init=pretrained, reference=str(pretrained), progress=False, log=lambda _: None,
+                      out=tmp_path / "folds")
+    assert result.steps.tolist() == [0, 2, 4] and result.curves.shape == (3, 3)
+    np.testing.assert_allclose(result.curves[:, 0], result.reference, rtol=1e-6)  # step 0 is the initial model
+    models = out_of_fold_models(tmp_path / "folds")
+    assert sorted(i for _, held in models for i in held) == sorted(nine.trial_ids.tolist())
+    for k, (model, held) in enumerate(models):  # each saved fold model scores its fold as the curve says
+        fold = nine.subset(np.flatnonzero(np.isin(nine.trial_ids, held)))
+        nll = evaluate(model, build_exemplars(fold)).nll_exact.mean()
+        assert nll == pytest.approx(result.curves[k, result.chosen], rel=1e-5)
+
+
+def test_crossval_rejects_too_few_trials_or_no_humans(trials):
+    from trafficweaving.model.crossval import crossval
+
+    with pytest.raises(InputError, match="fewer than --folds 5"):
+        crossval(trials.subset(np.arange(4)), 5, QUICK, progress=False, log=lambda _: None)
+    robots = trials.subset(np.arange(6))
+    robots.roles[:] = "robot"
+    with pytest.raises(InputError, match="no prediction instances"):
+        crossval(robots, 3, QUICK, progress=False, log=lambda _: None)

@@ -132,25 +132,77 @@ def write_figures(trials, out: Path, reference=None) -> list[Path]:
     return paths
 
 
+def _train_config(args):
+    """The :class:`TrainConfig` of ``train`` / ``crossval`` options: the paper's schedule from
+    scratch, the fine-tuning defaults with ``--init``; ``--lr`` etc. override either."""
+    from dataclasses import replace
+
+    from .model.train import FINE_TUNING, TrainConfig
+
+    for name in ("steps", "validate_every"):
+        value = getattr(args, name, None)
+        if value is not None and value < 1:
+            raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {value}")
+    if (getattr(args, "patience", None) or 0) < 0:
+        raise InputError(f"--patience must be 0 (off) or a positive integer, got {args.patience}")
+    if args.lr is not None and not 0 < args.lr < 1:
+        raise InputError(f"--lr must be a learning rate in (0, 1), got {args.lr}")
+    tc = TrainConfig(steps=args.steps, seed=args.seed)
+    if args.init:
+        tc = replace(tc, **FINE_TUNING)
+    overrides = {"lr_initial": args.lr, "validate_every": args.validate_every,
+                 "patience": getattr(args, "patience", None)}
+    tc = replace(tc, **{k: v for k, v in overrides.items() if v is not None})
+    return replace(tc, lr_final=min(tc.lr_final, tc.lr_initial), checkpoint_every=min(tc.checkpoint_every, tc.validate_every))
+
+
+def _log(args):
+    return (lambda line: print(line, file=sys.stderr)) if args.json else print
+
+
 def cmd_train(args) -> None:
     from .data.trials import load_trials
     from .model.checkpoint import choose_device
-    from .model.train import TrainConfig, train
+    from .model.train import train
 
-    if args.steps < 1:
-        raise InputError(f"--steps must be a positive integer, got {args.steps}")
+    if args.init and args.resume:
+        raise InputError("--init and --resume exclude each other (expected one: fine-tune a model, or continue a run)")
+    tc = _train_config(args)
     trials = load_trials(args.data)
-    tc = TrainConfig(steps=args.steps, seed=args.seed)
-    log = (lambda line: print(line, file=sys.stderr)) if args.json else print
-    result = train(trials, args.out, args.variant, tc, resume=args.resume, device=choose_device(args.device),
-                   progress=not args.json, log=log)
-    payload = {"variant": result.model.config.name, "steps": result.step, **result.validation,
+    result = train(trials, args.out, args.variant if args.variant or args.init else "cvae", tc, resume=args.resume,
+                   device=choose_device(args.device), progress=not args.json, log=_log(args), init=args.init)
+    validation = result.validation or {"instances": 0, "nll_exact": None, "nll_is": None, "nll_naive": None}
+    payload = {"variant": result.model.config.name, "steps": result.step, **validation,
+               "best_step": result.best_step, "init": args.init,
                "steps_per_second": round(result.steps_per_second, 2), "out": str(args.out)}
     _emit(args, payload, f"trained {payload['variant']} for {result.step} steps "
                          f"({result.steps_per_second:.1f} steps/s) -> {args.out}\n"
-                         f"validation ({result.validation['instances']} exemplars): "
-                         f"NLL exact {result.validation['nll_exact']:.3f}, IS {_fmt(result.validation['nll_is'])}, "
-                         f"naive {result.validation['nll_naive']:.3f} nats")
+                         f"validation ({validation['instances']} exemplars): "
+                         f"NLL exact {_fmt(validation['nll_exact'])}, IS {_fmt(validation['nll_is'])}, "
+                         f"naive {_fmt(validation['nll_naive'])} nats")
+
+
+def cmd_crossval(args) -> None:
+    from .data.trials import load_trials
+    from .model.checkpoint import choose_device
+    from .model.crossval import crossval
+
+    tc = _train_config(args)
+    trials = load_trials(args.data)
+    result = crossval(trials, args.folds, tc, variant=args.variant, init=args.init, reference=args.reference,
+                      seed=args.seed, device=choose_device(args.device), progress=not args.json, log=_log(args),
+                      out=args.out)
+    summary = result.summary()
+    payload = {**summary, "data": args.data, "init": args.init, "variant": args.variant, "out": args.out}
+    ref = summary["reference"]
+    lines = [f"{args.folds}-fold cross-validation by trial on {args.data} "
+             f"({'fine-tuning ' + args.init if args.init else 'training from scratch'})",
+             f"held-out exact NLL at the chosen {summary['steps']} steps: "
+             + " ".join(f"{v:.2f}" for v in summary["folds"]) + f"  mean {summary['nll_exact']:.3f}",
+             f"nested (each fold at the steps its other folds choose): mean {summary['nested']['nll_exact']:.3f}"]
+    if ref:
+        lines.append(f"reference {ref['model']}: " + " ".join(f"{v:.2f}" for v in ref["folds"]) + f"  mean {ref['nll_exact']:.3f}")
+    _emit(args, payload, "\n".join(lines))
 
 
 def _fmt(value) -> str:
@@ -160,20 +212,49 @@ def _fmt(value) -> str:
 def cmd_evaluate(args) -> None:
     from .data.trials import load_trials
     from .model.checkpoint import choose_device, load_model
-    from .model.evaluate import evaluate
     from .model.exemplars import build_exemplars
+    from .model.metrics import DIRECTIONS, PHASES, evaluate_instances
 
     if args.samples < 1:
         raise InputError(f"--samples must be a positive integer, got {args.samples}")
+    if args.coverage_samples < 2:
+        raise InputError(f"--coverage-samples must be at least 2, got {args.coverage_samples}")
+    if args.ade_samples < 1:
+        raise InputError(f"--ade-samples must be a positive integer, got {args.ade_samples}")
+    if args.max_sampled_instances is not None and args.max_sampled_instances < 0:
+        raise InputError(f"--max-sampled-instances must be 0 or more, got {args.max_sampled_instances}")
+    if args.per_instance is not None and Path(args.per_instance).is_dir():
+        raise InputError(f"--per-instance {args.per_instance}: is a folder (expected a .parquet file to write)")
     model = load_model(args.model, choose_device(args.device))
-    exemplars = build_exemplars(load_trials(args.data))
+    trials = load_trials(args.data)
+    exemplars = build_exemplars(trials)
     if len(exemplars) == 0:
         raise InputError(f"{args.data}: no prediction instances (expected human agents in trials of at least 21 steps)")
-    result = evaluate(model, exemplars, samples=args.samples, seed=args.seed).summary()
+    metrics = evaluate_instances(model, trials, exemplars, samples=args.coverage_samples, ade_samples=args.ade_samples,
+                                 max_sampled=args.max_sampled_instances, nll_samples=args.samples, seed=args.seed)
+    result = metrics.summary()
+    if args.per_instance is not None:
+        metrics.write_parquet(args.per_instance, {"model": args.model, "data": str(args.data), "seed": args.seed,
+                                                  "samples": args.samples, "coverage_samples": args.coverage_samples,
+                                                  "ade_samples": args.ade_samples})
     payload = {**result, "model": args.model, "variant": model.config.name}
+    pct = lambda v: "n/a" if v is None else f"{100 * v:.0f}"  # noqa: E731
+    meters = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
+    phases = ", ".join(f"{p} {_fmt(result['nll_exact_by_phase'][p]['nll_exact'])} (n={result['nll_exact_by_phase'][p]['instances']})"
+                       for p in PHASES)
+    coverage = "; ".join(f"{d} " + ", ".join(f"{h} s {pct(c['50'])}/{pct(c['90'])}" for h, c in result["coverage"][d].items())
+                         for d in DIRECTIONS)
     _emit(args, payload, f"{args.model} ({model.config.name}) on {args.data}: {result['instances']} instances\n"
                          f"NLL per instance (nats, 15×2 accelerations in m/s²): exact {result['nll_exact']:.3f}, "
-                         f"importance-sampled {_fmt(result['nll_is'])}, naive {result['nll_naive']:.3f}")
+                         f"importance-sampled {_fmt(result['nll_is'])}, naive {result['nll_naive']:.3f}\n"
+                         f"  exact by direction (15 accelerations): x {_fmt(result['nll_exact_by_direction']['x'])}, "
+                         f"y {_fmt(result['nll_exact_by_direction']['y'])}\n"
+                         f"  exact by lane-change phase: {phases}\n"
+                         f"Sampled positions ({result['sampled_instances']} instances, {args.coverage_samples} samples each):\n"
+                         f"  coverage of the 50/90 % central intervals (%): {coverage}\n"
+                         f"  minADE {meters(result['min_ade_m'])} m, minFDE {meters(result['min_fde_m'])} m "
+                         f"(best of {args.ade_samples})"
+                         + (f"\nper-instance values: {args.per_instance}" if args.per_instance is not None else ""))
 
 
 def _parse_pick(text: str, trials) -> tuple[int, int, int]:
@@ -329,6 +410,20 @@ def _demo_human_model(trials, reference, figures: Path) -> None:
 
 
 # ---------------------------------------------------------------- parser
+def _add_schedule_options(p, steps: int) -> None:
+    """Options shared by ``train`` and ``crossval``."""
+    from .model.cvae import VARIANTS
+
+    p.add_argument("--variant", choices=tuple(VARIANTS), help="model variant (default cvae; with --init, the model's own)")
+    p.add_argument("--init", metavar="MODEL", help="fine-tune this checkpoint (its own schedule: --lr, --steps, --patience)")
+    p.add_argument("--steps", type=int, default=steps, help=f"training steps (default {steps})")
+    p.add_argument("--lr", type=float, help="initial learning rate (default 1e-3, or 1e-4 with --init)")
+    p.add_argument("--validate-every", type=int, help="steps between validations (default 1000, or 50 with --init)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda, cuda:N")
+    p.add_argument("--json", action="store_true")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="trafficweaving", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -361,21 +456,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_plot)
 
-    p = sub.add_parser("train", help="train a CVAE human model")
+    p = sub.add_parser("train", help="train a CVAE human model, or fine-tune one (--init)")
     p.add_argument("--data", required=True, help="Parquet dataset (trials split 80/20 by trial)")
-    p.add_argument("--out", required=True, help="output checkpoint (.pt), written every 1000 steps")
-    p.add_argument("--variant", default="cvae", choices=("cvae", "no-latent", "mixture-lstm", "lstm"))
-    p.add_argument("--steps", type=int, default=50_000)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output checkpoint (.pt), written every 1000 steps (50 when fine-tuning)")
+    _add_schedule_options(p, steps=50_000)
+    p.add_argument("--patience", type=int, help="early stopping: validations without improvement before stopping "
+                                                "(default 0: off); the best weights are kept")
     p.add_argument("--resume", help="continue the run saved in this training checkpoint")
-    p.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda, cuda:N")
-    p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_train)
 
-    p = sub.add_parser("evaluate", help="NLL of a human model on every human agent of a dataset")
+    p = sub.add_parser("crossval", help="k-fold cross-validation by trial (choosing the number of steps by the folds)")
+    p.add_argument("--data", required=True, help="Parquet dataset")
+    p.add_argument("--folds", type=int, default=5)
+    p.add_argument("--reference", help="a model scored on the same folds (checkpoint, default, or authors:PATH)")
+    p.add_argument("--out", help="folder for each fold's model at the chosen steps (fold_K.pt, with its held-out trials)")
+    _add_schedule_options(p, steps=1000)
+    p.set_defaults(func=cmd_crossval)
+
+    p = sub.add_parser("evaluate", help="NLL, coverage and displacement errors of a human model on every human agent of a dataset")
     p.add_argument("--model", default="default", help="checkpoint path, default, or authors:PATH")
     p.add_argument("--data", required=True, help="Parquet dataset")
-    p.add_argument("--samples", type=int, default=50, help="latent samples of the sampled estimators")
+    p.add_argument("--samples", type=int, default=50, help="latent samples of the sampled NLL estimators")
+    p.add_argument("--coverage-samples", type=int, default=100, help="sampled futures per instance for the position coverage")
+    p.add_argument("--ade-samples", type=int, default=20, help="sampled futures per instance for minADE/minFDE")
+    p.add_argument("--max-sampled-instances", type=int, default=5000,
+                   help="sample futures for at most this many instances (chosen at random with --seed; default 5000)")
+    p.add_argument("--per-instance", metavar="FILE.parquet", help="also write every instance's values to this Parquet file")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto")
     p.add_argument("--json", action="store_true")

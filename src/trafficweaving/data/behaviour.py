@@ -1,11 +1,15 @@
 """Marginal driving-behaviour statistics, used to calibrate simulated drivers against real ones.
 
-:func:`behaviour_samples` pools 1-D samples (speeds, accelerations, jerks, lane-change durations
-and positions) over every agent of a role; :func:`compare_behaviour` sets two such pools side by
-side with the 1-D Wasserstein distance, and :func:`format_comparison` renders that as Markdown.
+:func:`lane_change_events` finds when each car's lane change starts, crosses the divider and ends
+(the one definition of lane-change timing in the package); :func:`behaviour_samples` pools 1-D
+samples (speeds, accelerations, jerks, control holds, lane-change timing and positions) over every
+agent of a role; :func:`compare_behaviour` sets two such pools side by side with the 1-D
+Wasserstein distance, and :func:`format_comparison` renders that as Markdown.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.stats import wasserstein_distance
@@ -15,6 +19,13 @@ from .trials import TrialSet
 
 LANE_BAND = 0.4
 """A car is *at* a lane centre while within this lateral distance of it, m."""
+SIDEWAYS_SPEED = 0.2
+"""A lane change starts at the last step before the divider crossing with at most this lateral
+speed towards the target lane, m/s."""
+HOLD_TOLERANCE = 0.01
+"""An acceleration is *held* between consecutive steps that change it by less than this, m/s²."""
+NEAR_CROSSING = (2.5, 0.5)
+"""Window around the divider crossing for ``long_accel_abs_near_crossing``: seconds before, after."""
 
 STATISTICS = {
     "speed": "m/s",
@@ -22,13 +33,99 @@ STATISTICS = {
     "lat_accel": "m/s²",
     "long_jerk": "m/s³",
     "lat_jerk": "m/s³",
+    "long_hold": "fraction",
+    "lat_hold": "fraction",
+    "long_hold_run": "steps",
+    "lat_hold_run": "steps",
+    "long_accel_abs_near_crossing": "m/s²",
+    "lane_change_sideways_time": "s",
     "lane_change_duration": "s",
-    "lane_change_lead_time": "s",
     "lane_change_x": "m",
 }
 """The statistics of :func:`behaviour_samples` and their units, in display order."""
 
 SUMMARY_KEYS = ("count", "mean", "std", "p5", "p50", "p95")
+
+
+@dataclass(frozen=True)
+class LaneChanges:
+    """Lane-change timing of ``m`` agents: equal-length 1-D arrays ``[m]``, one entry per agent.
+
+    ``trial``: row index into the :class:`TrialSet`; ``agent``: 0 or 1; ``start``: step where the
+    sideways motion towards the other lane starts; ``crossing``: step
+    (float, interpolated) where the car crosses ``LANE_DIVIDER_Y``; ``end``: first step after the
+    crossing within ``LANE_BAND`` of the target lane's centre. Step indices count from the trial's
+    first step (multiply by ``trials.dt`` for seconds). NaN where the event does not happen or is
+    not recorded (all three NaN for an agent that never crosses).
+    """
+
+    trial: np.ndarray
+    agent: np.ndarray
+    start: np.ndarray
+    crossing: np.ndarray
+    end: np.ndarray
+
+
+def lane_change_events(trials: TrialSet, role: str = "human") -> LaneChanges:
+    """Lane-change timing of every agent with ``trials.roles == role`` (row-major order of
+    ``(trial, agent)``), over recorded steps only.
+
+    - ``crossing``: the first recorded step on the other side of ``LANE_DIVIDER_Y`` from the start
+      lane, interpolated linearly in ``y`` with the step before (NaN if the car never crosses, or
+      is already across at step 0);
+    - ``start``: the last step before the crossing at which the lateral speed towards the target
+      lane (``yd``, signed) is at most ``SIDEWAYS_SPEED``; 0 when the car already moves sideways
+      faster at the first step. With this threshold the 30 real human-in-the-loop drivers take a
+      median 1.9 s (mean 2.0 s) from ``start`` to ``crossing``;
+    - ``end``: the first recorded step at or after the crossing within ``LANE_BAND`` of the target
+      lane's centre (NaN if the recording stops before).
+    """
+    trial_idx, agent_idx = np.nonzero(trials.roles == role)
+    s = trials.states[trial_idx, agent_idx]  # [m, T, 6]
+    m, t_max = s.shape[:2]
+    steps = np.arange(t_max)
+    recorded = steps[None, :] < trials.lengths[trial_idx][:, None]  # [m, T]
+    y, yd = s[..., 1], s[..., 3]
+    starts_left = trials.start_lanes[trial_idx, agent_idx] == "left"
+    side = np.where(starts_left, 1.0, -1.0)[:, None]  # +1: the start lane lies at larger y
+
+    d = np.where(recorded, (y - LANE_DIVIDER_Y) * side, np.inf)  # distance to the divider, + on the start side
+    across = d <= 0
+    k = across.argmax(axis=1)  # first step on the other side
+    crosses = across.any(axis=1) & (k > 0)
+    rows = np.flatnonzero(crosses)
+    k_c = k[rows]
+    d0, d1 = d[rows, k_c - 1], d[rows, k_c]
+    crossing = np.full(m, np.nan)
+    crossing[rows] = k_c - 1 + d0 / (d0 - d1)
+
+    toward = -yd[rows] * side[rows]  # lateral speed towards the target lane, m/s
+    slow = (toward <= SIDEWAYS_SPEED) & (steps[None, :] < k_c[:, None])
+    last_slow = t_max - 1 - slow[:, ::-1].argmax(axis=1)
+    start = np.full(m, np.nan)
+    start[rows] = np.where(slow.any(axis=1), last_slow, 0.0)
+
+    y_target = np.where(starts_left, LANE_CENTRE_Y["right"], LANE_CENTRE_Y["left"])[rows, None]
+    arrived = (np.abs(y[rows] - y_target) < LANE_BAND) & (steps[None, :] >= k_c[:, None]) & recorded[rows]
+    end = np.full(m, np.nan)
+    end[rows] = np.where(arrived.any(axis=1), arrived.argmax(axis=1), np.nan)
+    return LaneChanges(trial=trial_idx, agent=agent_idx, start=start, crossing=crossing, end=end)
+
+
+def hold_runs(acc: np.ndarray, recorded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where a driver holds an acceleration, and for how long.
+
+    ``acc``: ``[m, T]`` accelerations (m/s²); ``recorded``: ``[m, T]`` bool. Returns ``(held, runs)``:
+    ``held`` is 1.0/0.0 for every pair of consecutive recorded steps (whether ``acc`` changed by less
+    than ``HOLD_TOLERANCE``), ``runs`` the lengths (in steps) of the maximal runs of consecutive
+    held pairs of each agent; both 1-D.
+    """
+    pairs = recorded[:, 1:]
+    held = (np.abs(np.diff(acc, axis=1)) < HOLD_TOLERANCE) & pairs  # [m, T-1]
+    padded = np.pad(held, ((0, 0), (1, 1))).astype(np.int8).ravel()  # False between agents
+    edges = np.diff(padded)
+    runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+    return held[pairs].astype(float), runs.astype(float)
 
 
 def behaviour_samples(trials: TrialSet, role: str = "human") -> dict[str, np.ndarray]:
@@ -39,50 +136,40 @@ def behaviour_samples(trials: TrialSet, role: str = "human") -> dict[str, np.nda
     - ``speed`` (m/s), ``long_accel`` / ``lat_accel`` (m/s²): ``xd``, ``xdd``, ``ydd`` at every step;
     - ``long_jerk`` / ``lat_jerk`` (m/s³): change of ``xdd`` / ``ydd`` between consecutive steps
       divided by ``trials.dt``;
-    - ``lane_change_duration`` (s): one per agent whose lane change is fully recorded, from the last
-      step within ``LANE_BAND`` of its start lane's centre before it first crosses
-      ``LANE_DIVIDER_Y`` to the first step within ``LANE_BAND`` of the other lane's centre after;
-    - ``lane_change_lead_time`` (s): one per agent that crosses the divider, from the last step within
-      ``LANE_BAND`` of its start lane's centre to the (interpolated) crossing — the first half of a
-      lane change, observed for every crossing agent, so unlike ``lane_change_duration`` it does not
-      favour quick lane changes when recordings stop soon after the cutoff;
-    - ``lane_change_x`` (m): one per agent that crosses the divider, ``x`` where ``y`` first crosses
-      it, interpolated linearly between the two steps either side.
+    - ``long_hold`` / ``lat_hold``: 1 or 0 per pair of consecutive steps, whether ``xdd`` / ``ydd`` is
+      held (changes by less than ``HOLD_TOLERANCE``); the mean is the fraction of held steps;
+    - ``long_hold_run`` / ``lat_hold_run`` (steps): lengths of the runs of consecutive held steps;
+    - ``long_accel_abs_near_crossing`` (m/s²): one per agent that crosses the divider, the mean of
+      ``|xdd|`` over the recorded steps from ``NEAR_CROSSING[0]`` s before to ``NEAR_CROSSING[1]`` s
+      after the crossing (how hard a driver presses the pedals around its lane change);
+    - ``lane_change_sideways_time`` (s): one per agent that crosses, from ``start`` to ``crossing``
+      of :func:`lane_change_events`, observed for every crossing agent (so, unlike the duration, it
+      does not favour quick lane changes when recordings stop soon after the cutoff);
+    - ``lane_change_duration`` (s): one per agent whose lane change is recorded to its ``end``, from
+      ``start`` to ``end``;
+    - ``lane_change_x`` (m): one per agent that crosses, ``x`` at the crossing (interpolated linearly
+      between the two steps either side).
     """
     trial_idx, agent_idx = np.nonzero(trials.roles == role)
     s = trials.states[trial_idx, agent_idx]  # [m, T, 6]
-    lengths = trials.lengths[trial_idx]
-    t_max = s.shape[1]
-    steps = np.arange(t_max)
-    recorded = steps[None, :] < lengths[:, None]  # [m, T]
+    steps = np.arange(s.shape[1])
+    recorded = steps[None, :] < trials.lengths[trial_idx][:, None]  # [m, T]
     pair_recorded = recorded[:, 1:]  # both steps k and k+1 recorded
-    x, y, xd, xdd, ydd = s[..., 0], s[..., 1], s[..., 2], s[..., 4], s[..., 5]
+    x, xd, xdd, ydd = s[..., 0], s[..., 2], s[..., 4], s[..., 5]
+    long_hold, long_runs = hold_runs(xdd, recorded)
+    lat_hold, lat_runs = hold_runs(ydd, recorded)
 
-    # Lane change: signed distance to the divider, positive on the start lane's side.
-    starts_left = trials.start_lanes[trial_idx, agent_idx] == "left"
-    side = np.where(starts_left, 1.0, -1.0)[:, None]
-    d = np.where(recorded, (y - LANE_DIVIDER_Y) * side, np.inf)  # [m, T]
-    crossed = d <= 0
-    k = crossed.argmax(axis=1)  # first step on the other side
-    crosses = crossed.any(axis=1) & (k > 0)
-    rows = np.flatnonzero(crosses)
-    k_c = k[rows]
-    d0, d1 = d[rows, k_c - 1], d[rows, k_c]
-    frac = d0 / (d0 - d1)
-    lane_change_x = x[rows, k_c - 1] + frac * (x[rows, k_c] - x[rows, k_c - 1])
-
-    y_start = np.where(starts_left, LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"])[rows, None]
-    y_target = np.where(starts_left, LANE_CENTRE_Y["right"], LANE_CENTRE_Y["left"])[rows, None]
-    y_c, rec_c = y[rows], recorded[rows]
-    before = steps[None, :] < k_c[:, None]
-    at_start = (np.abs(y_c - y_start) < LANE_BAND) & before
-    at_target = (np.abs(y_c - y_target) < LANE_BAND) & ~before & rec_c
-    complete = at_start.any(axis=1) & at_target.any(axis=1)
-    leave = t_max - 1 - at_start[:, ::-1].argmax(axis=1)
-    arrive = at_target.argmax(axis=1)
-    duration = (arrive - leave)[complete] * trials.dt
-    left_start = at_start.any(axis=1)
-    lead_time = ((k_c - 1 + frac) - leave)[left_start] * trials.dt
+    events = lane_change_events(trials, role)
+    rows = np.flatnonzero(np.isfinite(events.crossing))
+    crossing, start, end = events.crossing[rows], events.start[rows], events.end[rows]
+    k = np.floor(crossing).astype(int)
+    frac = crossing - k
+    lane_change_x = x[rows, k] + frac * (x[rows, k + 1] - x[rows, k])
+    before, after = (w / trials.dt for w in NEAR_CROSSING)
+    window = ((steps[None, :] >= crossing[:, None] - before - 1e-9)
+              & (steps[None, :] <= crossing[:, None] + after + 1e-9) & recorded[rows])
+    near = np.nansum(np.where(window, np.abs(xdd[rows]), 0.0), axis=1) / window.sum(axis=1)
+    complete = np.isfinite(end)
 
     return {
         "speed": xd[recorded],
@@ -90,8 +177,13 @@ def behaviour_samples(trials: TrialSet, role: str = "human") -> dict[str, np.nda
         "lat_accel": ydd[recorded],
         "long_jerk": (np.diff(xdd, axis=1) / trials.dt)[pair_recorded],
         "lat_jerk": (np.diff(ydd, axis=1) / trials.dt)[pair_recorded],
-        "lane_change_duration": duration.astype(float),
-        "lane_change_lead_time": lead_time.astype(float),
+        "long_hold": long_hold,
+        "lat_hold": lat_hold,
+        "long_hold_run": long_runs,
+        "lat_hold_run": lat_runs,
+        "long_accel_abs_near_crossing": near,
+        "lane_change_sideways_time": (crossing - start) * trials.dt,
+        "lane_change_duration": (end - start)[complete] * trials.dt,
         "lane_change_x": lane_change_x,
     }
 

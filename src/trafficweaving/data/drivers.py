@@ -10,12 +10,29 @@ car (another simulated driver, or later a robot). Each step, every driver
    where ``signal`` reads the other's behaviour (accelerating = claiming the gap, braking =
    yielding). A hysteresis keeps the intent until the utility clearly flips, so when both claim
    the gap the one falling behind backs off while the other escalates to full throttle;
-3. **controls longitudinal acceleration** through pedals: a personal comfort throttle level,
-   short brake pulses (sharp when the situation is urgent), coasting (aerodynamic drag only) and
-   cruising back to a preferred speed; pedal lag and pedal noise make it human-smooth;
-4. **changes lane** once the gap allows for its intent (a personal margin that shrinks as the
-   cutoff nears) along a minimum-jerk lateral profile of personal duration, tracked by a
-   damped lateral controller with steering lag and lane-keeping wander.
+3. **controls longitudinal acceleration** through pedals: a personal comfort throttle level (a
+   burst of full throttle when the other car fights for the same gap or while cutting into it),
+   brake pulses (sharp when the situation is urgent or the car swerves into its lane change),
+   coasting (aerodynamic drag only) and cruising back to a preferred speed. The gap stays
+   contested, and the driver keeps pressing, until it is open and, during the first part of its
+   own lane change, while it has little room beyond its margin (``PRESS_ROOM``);
+4. **changes lane** in two phases, lopsided as real lane changes are (slow start, quick finish):
+   past its personal earliest ``x`` it drifts towards the divider within its own lane
+   (``CREEP_SPEED`` up to ``CREEP_MAX``); once the gap allows for its intent (a personal margin
+   that shrinks as the cutoff nears) it completes the change from there along a minimum-jerk
+   lateral profile of personal duration (3.3–5.3 s, hurried near the cutoff), tracked by a
+   damped lateral controller.
+
+Pedal and steering are **intermittent**, as real drivers' are: each control is *held* (its
+acceleration stays exactly the same; ``xdd`` then changes only by the slowly varying drag, well
+under 0.01 m/s² per step) between discrete adjustments. A driver adjusts a control
+when its error (wanted minus held acceleration) exceeds a personal threshold or when a personal
+random hold time (exponential, personal mean) runs out; an adjustment moves the control part of
+the way to the wanted value (a personal pedal lag, a steering lag) with a motor error. Releasing
+a pressed pedal is exact; a coasting driver's later unprompted adjustments are, some of the time
+(``COAST_TOUCH_P``), light touches of a pedal around zero (``COAST_TOUCH_SD``), so coasting is
+not one long hold. Lane-keeping wobble comes from the steering adjustment errors, so real
+drivers' hold fractions and hold-run lengths come out (``docs/calibration.md``).
 
 Personal style (persistent per driver) comes from :class:`DriverStyles`; the population
 distribution and the decision weights are :class:`DriverModel` fields, calibrated so that the
@@ -38,6 +55,9 @@ HARD_BRAKE = 8.4
 """Largest deceleration seen in real recordings, m/s²."""
 MAX_LATERAL_ACCEL = 4.0
 """Largest lateral acceleration a driver steers for (m/s²); real drivers stay within ±3."""
+MIN_BRAKING_SPEED = 20.0
+"""Highway drivers yielding the gap start no brake pulse below this speed (real: 5 % of steps under
+25 m/s), m/s; without it two drivers who both yield can brake each other to a crawl."""
 DRAG_AT_28 = 0.34
 """Deceleration when coasting at 28 m/s (real recordings: -0.33 to -0.34 m/s²); grows with v²."""
 
@@ -84,19 +104,29 @@ class DriverModel:
     preferred_speed_range: tuple[float, float] = (27.5, 31.5)
     front_margin_range: tuple[float, float] = (1.0, 7.0)
     """Clearance beyond a car length a driver wants before cutting in, m."""
-    lane_change_duration_range: tuple[float, float] = (3.0, 5.0)
-    lane_change_earliest_x_range: tuple[float, float] = (-95.0, -50.0)
-    """Personal earliest ``x`` at which a driver starts a lane change once the gap allows, m."""
+    lane_change_duration_range: tuple[float, float] = (3.3, 5.3)
+    lane_change_earliest_x_range: tuple[float, float] = (-110.0, -80.0)
+    """Personal earliest ``x`` from which a driver drifts towards the divider and starts its lane change
+    once the gap allows, m."""
     pedal_lag_range: tuple[float, float] = (0.03, 0.10)
-    """Time constant of the pedal (first-order lag), s."""
+    """Time constant of a pedal adjustment (first-order lag while adjusting), s."""
+    pedal_threshold_range: tuple[float, float] = (0.1, 0.4)
+    """Pedal error (wanted minus held acceleration) beyond which a driver adjusts at once, m/s²."""
+    pedal_hold_range: tuple[float, float] = (0.05, 0.3)
+    """Mean time a driver holds the pedal still while its error stays below threshold, s."""
+    steer_threshold_range: tuple[float, float] = (0.05, 0.25)
+    """Steering error (wanted minus held lateral acceleration) beyond which a driver adjusts at
+    once, m/s²."""
+    steer_hold_range: tuple[float, float] = (0.2, 0.8)
+    """Mean time a driver holds the steering still while its error stays below threshold, s."""
     cruise_throttle_range: tuple[float, float] = (0.8, 2.6)
     """Gentle throttle a driver uses to regain its preferred speed, m/s²."""
     lane_offset_sd: float = 0.25
     """Spread of where in the target lane a driver ends up, m (kept off the road edges)."""
-    lateral_wander_sd: float = 0.6
-    """Stationary spread of lane-keeping lateral acceleration noise, m/s²."""
+    steer_noise_sd: float = 0.12
+    """Spread of the motor error of a steering adjustment (lane-keeping wobble), m/s²."""
     pedal_noise_sd: float = 0.1
-    """Spread of throttle-level jitter while a pedal is pressed, m/s²."""
+    """Spread of the motor error of a pedal adjustment while a pedal is pressed, m/s²."""
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -116,6 +146,10 @@ class DriverStyles:
     lane_change_duration: np.ndarray
     lane_change_earliest_x: np.ndarray
     pedal_lag: np.ndarray
+    pedal_threshold: np.ndarray
+    pedal_hold: np.ndarray
+    steer_threshold: np.ndarray
+    steer_hold: np.ndarray
     cruise_throttle: np.ndarray
     impatience: np.ndarray
 
@@ -136,6 +170,10 @@ class DriverStyles:
             lane_change_duration=uniform(model.lane_change_duration_range),
             lane_change_earliest_x=uniform(model.lane_change_earliest_x_range),
             pedal_lag=uniform(model.pedal_lag_range),
+            pedal_threshold=uniform(model.pedal_threshold_range),
+            pedal_hold=uniform(model.pedal_hold_range),
+            steer_threshold=uniform(model.steer_threshold_range),
+            steer_hold=uniform(model.steer_hold_range),
             cruise_throttle=uniform(model.cruise_throttle_range),
             impatience=uniform(model.impatience_range),
         )
@@ -161,9 +199,13 @@ class DriverAgents:
     """
 
     HISTORY = 8  # steps of relative observations kept for the reaction delay
-    LATERAL_LAG = 0.15  # steering lag of the lateral acceleration, s
+    LATERAL_LAG = 0.15  # time constant of a steering adjustment (first-order lag while adjusting), s
     LATERAL_GAINS = (1.5, 2.4)  # lane tracking stiffness (1/s²) and damping (1/s)
-    WANDER_TIME = 0.6  # correlation time of lane-keeping wander, s
+    PRESS_ROOM = 15.0  # a driver keeps pressing into its lane change until it has this much room beyond its margin, m
+    COAST_TOUCH_SD = 0.08  # spread of the light pedal touches of a coasting driver, m/s²
+    COAST_TOUCH_P = 0.4  # chance that an unprompted adjustment of a coasting driver touches the pedal
+    CREEP_SPEED = 0.35  # lateral speed of the drift towards the divider before the lane change, m/s
+    CREEP_MAX = 0.9  # how far a driver drifts towards the divider within its own lane, m
 
     def __init__(self, model: DriverModel, styles: DriverStyles, start_states: np.ndarray,
                  start_lanes: np.ndarray, rng: np.random.Generator, mood: np.ndarray | None = None):
@@ -184,12 +226,14 @@ class DriverAgents:
         self.lc_t = np.zeros(m)  # time since the lane change started, s
         self.lc_duration = styles.lane_change_duration.copy()  # of the lane change under way, s
         self.lc_y0 = self.start_y.copy()
-        self.pedal = np.zeros(m)  # real drivers mostly coast: pedals released at the start
-        self.pedal_command = np.zeros(m)
+        self.creep = np.zeros(m)  # drift towards the divider before the lane change, m (>= 0)
+        self.toward = np.sign(self.target_y - self.start_y)  # +1: the target lane lies at larger y
+        self.pedal = np.zeros(m)  # held pedal acceleration; real drivers mostly coast at the start
+        self.pedal_hold_left = np.zeros(m)  # time until the next unprompted pedal adjustment, s
         self.brake_left = np.zeros(m)  # remaining time of the current brake pulse, s
         self.brake_level = np.zeros(m)
-        self.lat_noise = np.zeros(m)
-        self.ydd = np.zeros(m)
+        self.ydd = np.zeros(m)  # held lateral acceleration
+        self.steer_hold_left = np.zeros(m)  # time until the next unprompted steering adjustment, s
         self.obs = np.zeros((self.HISTORY, m, 3))  # ring buffer of (gap, Δv, other's xdd)
         self.steps = 0
 
@@ -242,7 +286,7 @@ class DriverAgents:
         start_change = ~self.committed & clear & ((x > st.lane_change_earliest_x) | (urgency > 0))
         self.lc_y0 = np.where(start_change, own[:, 1], self.lc_y0)
         # a late lane change is hurried so that the car is across the divider before the cutoff
-        hurried = np.minimum(st.lane_change_duration, np.maximum(2.2, 1.8 * (CUTOFF_X - x) / np.maximum(v, 1.0)))
+        hurried = np.minimum(st.lane_change_duration, np.maximum(2.5, 1.8 * (CUTOFF_X - x) / np.maximum(v, 1.0)))
         self.lc_duration = np.where(start_change, hurried, self.lc_duration)
         self.lc_t = np.where(start_change, 0.0, self.lc_t)
         self.committed |= start_change
@@ -252,42 +296,70 @@ class DriverAgents:
         # cruising: coast, with gentle throttle while well below the preferred speed
         cruise = np.where(below_alert & (v < st.preferred_speed - 1.0), st.cruise_throttle, 0.0)
         claims = (other_acc > 0.8) & (np.abs(gap) < 12.0)  # the other is fighting for the same gap
-        push = np.where(claims & (st.assertiveness > 0), FULL_THROTTLE, st.throttle)
+        # the gap is contested until it is open, and while the car swerves into it with little room
+        room = np.abs(ahead) - margin  # m
+        swerving = self.committed & (self.lc_t < 0.8 * self.lc_duration) & (room < self.PRESS_ROOM)
+        contesting = ~clear | swerving
+        # contesting the gap, or cutting in with little room: a burst of full throttle
+        push = np.where(claims | swerving, FULL_THROTTLE, st.throttle)
         push = np.where(below_alert, push, 0.0)
-        # behind: a brake pulse while the other car's lead, projected over 1.5 s, is still missing
+        # behind: a brake pulse while the other car's lead, projected over 1.5 s, is still short
         missing = gap + 1.5 * dv + margin
         self.brake_left = np.maximum(self.brake_left - DT, 0.0)
-        new_pulse = (~self.front & ~clear & (missing > 0) & (dv > -2.5) & (self.brake_left <= 0)
+        short = (missing > 0) | ((missing > -self.PRESS_ROOM) & (dv > -1.0))  # into the lane change: until slower
+        new_pulse = (~self.front & contesting & short & (dv > -2.5) & (v > MIN_BRAKING_SPEED) & (self.brake_left <= 0)
                      & (self.rng.random(m) < 0.3))
-        hard = np.where(urgency > 0.5, np.maximum(st.brake, 0.7 * HARD_BRAKE), st.brake)
+        hard = np.where((urgency > 0.5) | swerving, np.maximum(st.brake, 0.7 * HARD_BRAKE), st.brake)
         self.brake_level = np.where(new_pulse, -hard * self.rng.uniform(0.6, 1.0, m), self.brake_level)
         self.brake_left = np.where(new_pulse, self.rng.uniform(0.3, 0.8, m), self.brake_left)
         braking = self.brake_left > 0
 
         settled_rear = ~self.front & (clear | self.committed) & (gap > -(CAR_LENGTH + 3.0))
         command = np.select(
-            [braking, self.front & ~clear, ~self.front & ~clear, settled_rear],
+            [braking, self.front & contesting, ~self.front & contesting, settled_rear],
             [self.brake_level, push, 0.0, np.minimum(cruise, 0.0)],
             default=cruise,
         )
-        changed = np.abs(command - self.pedal_command) > 0.5
-        jitter = np.where(command != 0.0, model.pedal_noise_sd * self.rng.standard_normal(m), 0.0)
-        self.pedal_command = np.where(changed, command, self.pedal_command) + jitter
-        self.pedal = self.pedal + DT / (st.pedal_lag + DT) * (self.pedal_command - self.pedal)
+        adjust = self._adjusting(command - self.pedal, st.pedal_threshold, self.pedal_hold_left, st.pedal_hold)
+        lagged = self.pedal + DT / (st.pedal_lag + DT) * (command - self.pedal)
+        pressed = lagged + model.pedal_noise_sd * self.rng.standard_normal(m)
+        # releasing a pressed pedal is exact (feet off); a coasting driver's later adjustments are
+        # light touches of the pedal around zero
+        touch = np.where(self.rng.random(m) < self.COAST_TOUCH_P, self.COAST_TOUCH_SD * self.rng.standard_normal(m), self.pedal)
+        released = np.where(np.abs(self.pedal) > 2 * self.COAST_TOUCH_SD, 0.0, touch)
+        self.pedal = np.where(adjust, np.where(command == 0.0, released, pressed), self.pedal)
         xdd = np.clip(self.pedal + coasting_acceleration(v), -HARD_BRAKE, FULL_THROTTLE)
 
-        # ---- lateral: minimum-jerk lane change tracked with steering lag, or lane keeping
+        # ---- lateral: a slow drift towards the divider once past the personal earliest x (a lane
+        # change's slow start), then a minimum-jerk lane change tracked by held steering
+        creeping = ~self.committed & (x > st.lane_change_earliest_x) & (self.creep < self.CREEP_MAX)
+        self.creep = np.where(creeping, np.minimum(self.creep + self.CREEP_SPEED * DT, self.CREEP_MAX), self.creep)
         self.lc_t = np.where(self.committed, self.lc_t + DT, 0.0)
         duration = self.lc_duration
         s = np.clip(self.lc_t / duration, 0.0, 1.0)
         dy = np.where(self.committed, self.target_y - self.lc_y0, 0.0)
-        y_ref = np.where(self.committed, self.lc_y0, self.start_y) + dy * (10 * s**3 - 15 * s**4 + 6 * s**5)
-        yd_ref = dy * (30 * s**2 - 60 * s**3 + 30 * s**4) / duration
+        y_ref = (np.where(self.committed, self.lc_y0, self.start_y + self.toward * self.creep)
+                 + dy * (10 * s**3 - 15 * s**4 + 6 * s**5))
+        yd_ref = dy * (30 * s**2 - 60 * s**3 + 30 * s**4) / duration + np.where(creeping, self.toward * self.CREEP_SPEED, 0.0)
         ydd_ref = dy * (60 * s - 180 * s**2 + 120 * s**3) / duration**2
-        decay = np.exp(-DT / self.WANDER_TIME)
-        self.lat_noise = self.lat_noise * decay + model.lateral_wander_sd * np.sqrt(1 - decay**2) * self.rng.standard_normal(m)
         k_p, k_d = self.LATERAL_GAINS
-        ydd_command = ydd_ref + k_p * (y_ref - own[:, 1]) + k_d * (yd_ref - own[:, 3]) + self.lat_noise
-        ydd_command = np.clip(ydd_command, -MAX_LATERAL_ACCEL, MAX_LATERAL_ACCEL)
-        self.ydd = self.ydd + DT / (self.LATERAL_LAG + DT) * (ydd_command - self.ydd)
+        wanted = ydd_ref + k_p * (y_ref - own[:, 1]) + k_d * (yd_ref - own[:, 3])
+        adjust = self._adjusting(wanted - self.ydd, st.steer_threshold, self.steer_hold_left, st.steer_hold)
+        steered = (self.ydd + DT / (self.LATERAL_LAG + DT) * (wanted - self.ydd)
+                   + model.steer_noise_sd * self.rng.standard_normal(m))
+        self.ydd = np.where(adjust, np.clip(steered, -MAX_LATERAL_ACCEL, MAX_LATERAL_ACCEL), self.ydd)
         return np.stack([xdd, self.ydd], axis=1)
+
+    def _adjusting(self, error: np.ndarray, threshold: np.ndarray, hold_left: np.ndarray,
+                   mean_hold: np.ndarray) -> np.ndarray:
+        """Event-triggered correction of one control: which drivers adjust it this step (``[m]`` bool).
+
+        A driver adjusts when its ``error`` (wanted minus held acceleration, m/s²) exceeds its
+        personal ``threshold`` (m/s²) or when its hold time runs out; otherwise it keeps exactly the
+        previous acceleration. ``hold_left`` (s, ``[m]``) is counted down in place and, for those
+        adjusting, redrawn from an exponential distribution of personal mean ``mean_hold`` (s).
+        """
+        hold_left -= DT
+        adjust = (np.abs(error) > threshold) | (hold_left <= 0.0)
+        hold_left[adjust] = (mean_hold * self.rng.standard_exponential(len(error)))[adjust]
+        return adjust

@@ -1,5 +1,5 @@
-"""The paper's CVAE human action model (DESIGN.md §3), one configurable implementation of the
-four variants of the paper's Fig. 3.
+"""The paper's CVAE human action model, one configurable implementation of the four variants of
+the paper's Fig. 3 and of ``cvae-hold`` (the CVAE with a hold-aware output, see docs/model.md).
 
 Shapes: ``B`` exemplars, ``L`` history steps, ``N = 15`` future steps, ``S`` latent samples per
 exemplar, ``Z = K_z^N_z`` joint latent values. Every tensor here is *standardised* (the model holds
@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .gmm import GMM, GMMHead
+from .gmm import GMM, GMMHead, HoldHead, HoldMixture
 from .lstm import LSTMCell, SequenceSummary, StateProjection, dropout_masks
 
 STATE_DIM = 6
@@ -23,19 +23,21 @@ ACTION_DIM = 2
 HORIZON = 15
 MIN_HISTORY = 5  # prediction needs steps 0..t with t >= 4
 
-VARIANTS = {  # name: (latent_vars N_z, latent_classes K_z, components M), the paper's Fig. 3
-    "cvae": (2, 5, 16),
-    "no-latent": (1, 1, 16),
-    "mixture-lstm": (2, 5, 1),
-    "lstm": (1, 1, 1),
+VARIANTS = {  # name: (latent_vars N_z, latent_classes K_z, components M, hold)
+    "cvae": (2, 5, 16, False),  # the paper's Fig. 3 ...
+    "no-latent": (1, 1, 16, False),
+    "mixture-lstm": (2, 5, 1, False),
+    "lstm": (1, 1, 1, False),
+    "cvae-hold": (2, 5, 16, True),  # ... and ours: the CVAE with the hold-aware output (gmm.HoldMixture)
 }
 
 
 @dataclass(frozen=True)
 class CVAEConfig:
-    """Architecture. Defaults are the paper's CVAE; :meth:`variant` builds the Fig. 3 ablations.
-    ``has_q`` is False for a model without the recognition network q(z|x,y) (the authors'
-    published weights only hold what prediction needs)."""
+    """Architecture. Defaults are the paper's CVAE; :meth:`variant` builds the Fig. 3 ablations
+    and ``cvae-hold``. ``has_q`` is False for a model without the recognition network q(z|x,y)
+    (the authors' published weights only hold what prediction needs); ``hold`` mixes "hold the
+    previous action" modes into each step's output (:class:`~trafficweaving.model.gmm.HoldMixture`)."""
 
     latent_vars: int = 2
     latent_classes: int = 5
@@ -45,18 +47,19 @@ class CVAEConfig:
     decoder_units: int = 128
     p_z_hidden: int = 16
     has_q: bool = True
+    hold: bool = False
 
     @staticmethod
     def variant(name: str, **overrides) -> "CVAEConfig":
         if name not in VARIANTS:
             raise ValueError(f"unknown variant {name!r} (expected one of {', '.join(VARIANTS)})")
-        n_z, k_z, m = VARIANTS[name]
-        return CVAEConfig(latent_vars=n_z, latent_classes=k_z, components=m, **overrides)
+        n_z, k_z, m, hold = VARIANTS[name]
+        return CVAEConfig(latent_vars=n_z, latent_classes=k_z, components=m, hold=hold, **overrides)
 
     @property
     def name(self) -> str:
-        """The Fig. 3 variant name of this configuration (or ``custom``)."""
-        key = (self.latent_vars, self.latent_classes, self.components)
+        """The variant name of this configuration (or ``custom``)."""
+        key = (self.latent_vars, self.latent_classes, self.components, self.hold)
         return next((n for n, v in VARIANTS.items() if v == key), "custom")
 
     @property
@@ -118,6 +121,7 @@ class CVAE(nn.Module):
         self.decoder_initial_state = StateProjection(zx_size, c.decoder_units)
         self.decoder = LSTMCell(zx_size + STATE_DIM + ACTION_DIM, c.decoder_units)
         self.gmm = GMMHead(c.decoder_units, c.components)
+        self.hold = HoldHead(c.decoder_units) if c.hold else None
 
         classes = torch.tensor(list(itertools.product(range(c.latent_classes), repeat=c.latent_vars)))
         self.register_buffer("latent_classes", classes, persistent=False)  # [Z, N_z], first variable slowest
@@ -166,6 +170,12 @@ class CVAE(nn.Module):
         return per_var.sum(-1)
 
     # -- decoder ----------------------------------------------------------------------------
+    def output(self, h: torch.Tensor, previous: torch.Tensor) -> GMM | HoldMixture:
+        """Per-step output distribution from decoder outputs ``h [..., units]`` and the action fed
+        at that step, ``previous [..., 2]`` (broadcastable; only the hold variant uses it)."""
+        gmm = self.gmm(h)
+        return gmm if self.hold is None else self.hold(h, gmm, previous)
+
     def _decoder_parts(self, zx: torch.Tensor, robot_inputs: torch.Tensor, action_inputs: torch.Tensor | None):
         """Split the decoder's input projection: the ``zx`` part (constant over the horizon)
         ``[S, B, 4u]``, the robot-state part ``[B, N, 4u]`` and the action weights."""
@@ -184,13 +194,14 @@ class CVAE(nn.Module):
         return torch.cat([batch.robot_present.unsqueeze(1), batch.robot_future[:, :-1]], dim=1)
 
     def decode(self, zx: torch.Tensor, batch: Batch, dropout: float = 0.0, feed_own: float = 0.0,
-               generator: torch.Generator | None = None) -> tuple[torch.Tensor, GMM]:
+               generator: torch.Generator | None = None) -> tuple[torch.Tensor, GMM | HoldMixture]:
         """Teacher-forced decoding of ``batch.y`` for latent-and-context inputs ``zx [S, B, zx_size]``.
 
         Returns ``log p(y|x,z)`` ``[S, B]`` (sum over the horizon of per-step log densities capped
-        at 50) and the per-step mixtures (batch dims ``[S, B, N]``). In training, ``feed_own`` is the
+        at 50) and the per-step output distributions (batch dims ``[S, B, N]``; their ``log_prob``
+        and ``marginal_log_prob`` take ``y [S or 1, B, N, 2]``). In training, ``feed_own`` is the
         probability that a step is fed the decoder's own sample of the previous action instead of
-        the recorded one (scheduled sampling).
+        the recorded one (scheduled sampling); the hold modes stay centred on the recorded one.
         """
         s, b = zx.shape[:2]
         action_inputs = torch.cat([batch.human_present_action.unsqueeze(1), batch.y[:, :-1]], dim=1)
@@ -206,13 +217,14 @@ class CVAE(nn.Module):
             if feed_own > 0.0 and k > 0:
                 rows = swap[k].nonzero().squeeze(1)
                 if len(rows):
-                    own = self.gmm(outputs[-1][rows].detach()).sample(generator)
+                    previous = action_inputs[:, k - 1].repeat(s, 1)[rows]
+                    own = self.output(outputs[-1][rows].detach(), previous).sample(generator)
                     true = action_inputs[:, k].repeat(s, 1)[rows]
                     gates = gates.index_add(0, rows, torch.matmul(own - true, w_action))
             state = self.decoder.step(gates, state, None if keep is None else keep[k])
             outputs.append(state[1])
-        gmm = self.gmm(torch.stack(outputs, dim=1).view(s, b, HORIZON, -1))
-        return gmm.log_prob(batch.y.unsqueeze(0)).sum(-1), gmm
+        dist = self.output(torch.stack(outputs, dim=1).view(s, b, HORIZON, -1), action_inputs)
+        return dist.log_prob(batch.y.unsqueeze(0)).sum(-1), dist
 
     def sample_actions(self, zx: torch.Tensor, robot_inputs: torch.Tensor, present_action: torch.Tensor,
                        generator: torch.Generator | None = None,
@@ -231,10 +243,11 @@ class CVAE(nn.Module):
         for k in range(HORIZON):
             gates = (constant + per_step[:, k]).reshape(s * b, -1) + torch.matmul(action, w_action)
             state = self.decoder.step(gates, state)
+            dist = self.output(state[1], action)
             if noise is None:
-                action = self.gmm(state[1]).sample(generator)
+                action = dist.sample(generator)
             else:
-                action = self.gmm(state[1]).sample(uniform=noise[0][:, :, k].reshape(-1), normal=noise[1][:, :, k].reshape(-1, 2))
+                action = dist.sample(uniform=noise[0][:, :, k].reshape(-1), normal=noise[1][:, :, k].reshape(-1, 2))
             samples.append(action)
         return torch.stack(samples, dim=1).view(s, b, HORIZON, ACTION_DIM)
 

@@ -74,11 +74,14 @@ class HumanPredictor:
 
 
 def human_states(present: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-    """Human states ``[..., 15, 6]`` at steps t+1..t+15 from its present state ``present [6]`` and
-    sampled accelerations ``actions [..., 15, 2]`` (m/s²), by the trapezoid rule (as recorded
-    human cars move)."""
-    acc = torch.cat([present[4:6].expand(*actions.shape[:-2], 1, 2), actions], dim=-2)  # [..., 16, 2]
-    vel = present[2:4] + DT * torch.cumsum(0.5 * (acc[..., 1:, :] + acc[..., :-1, :]), dim=-2)
-    vel_all = torch.cat([present[2:4].expand(*actions.shape[:-2], 1, 2), vel], dim=-2)
-    pos = present[0:2] + DT * torch.cumsum(0.5 * (vel_all[..., 1:, :] + vel_all[..., :-1, :]), dim=-2)
-    return torch.stack([pos[..., 0], pos[..., 1], vel[..., 0], vel[..., 1], actions[..., 0], actions[..., 1]], dim=-1)
+    """Human states ``[..., 15, 6]`` at steps t+1..t+15 from its present state ``present [6]``
+    (or a batch ``[..., 6]`` broadcastable against the leading dims of ``actions``) and sampled
+    accelerations ``actions [..., 15, 2]`` (m/s²), by the trapezoid rule (as recorded human cars
+    move)."""
+    lead = torch.broadcast_shapes(present.shape[:-1], actions.shape[:-2])
+    start = lambda k: present[..., None, k:k + 2].expand(*lead, 1, 2)  # noqa: E731
+    acc = torch.cat([start(4), actions.expand(*lead, HORIZON, 2)], dim=-2)  # [..., 16, 2]
+    vel = present[..., None, 2:4] + DT * torch.cumsum(0.5 * (acc[..., 1:, :] + acc[..., :-1, :]), dim=-2)
+    vel_all = torch.cat([start(2), vel], dim=-2)
+    pos = present[..., None, 0:2] + DT * torch.cumsum(0.5 * (vel_all[..., 1:, :] + vel_all[..., :-1, :]), dim=-2)
+    return torch.cat([pos, vel, acc[..., 1:, :]], dim=-1)

@@ -13,7 +13,9 @@ the same samples, to rounding), reorganised for throughput:
 * gate columns are reordered ``(i, f, o, j)``, the forget bias is folded into the bias and the
   ``j`` columns are doubled, so that one in-place sigmoid gives every gate: ``tanh(x) = 2σ(2x) - 1``
   (PyTorch's CPU ``tanh`` costs about seven sigmoids); the gate arithmetic runs in place;
-* the mixture component is drawn by inverse CDF from one uniform (no Gumbel logarithms);
+* the mixture component is drawn by inverse CDF from one uniform (no Gumbel logarithms); with the
+  hold-aware output (``cvae-hold``) the same uniform first picks the hold mode
+  (:func:`~trafficweaving.model.gmm.split_uniform`), exactly as the model's own sampling does;
 * rows run in cache-sized chunks.
 """
 
@@ -23,7 +25,7 @@ import torch
 
 from .cvae import CVAE, HORIZON, STATE_DIM
 from .lstm import FORGET_BIAS
-from .gmm import LOG_SIGMA_CLIP
+from .gmm import HOLD_MODES, LOG_SIGMA_CLIP, compose_hold_sample, split_uniform
 
 
 def _reorder_gates(w: torch.Tensor) -> torch.Tensor:
@@ -67,7 +69,13 @@ class BatchedSampler:
             order = torch.cat([torch.arange(m_count), per_component])
             head = torch.cat([g.log_pi.weight, g.mu.weight, g.log_sigma.weight, g.corr.weight]).T[:, order]  # [u, 6M]
             self.head_bias = torch.cat([g.log_pi.bias, g.mu.bias, g.log_sigma.bias, g.corr.bias])[order]
-            self.param_offsets = (m_count + torch.arange(5)).unsqueeze(0)
+            # the hold variant's mode logits go first: head columns [modes (4), log_pi (M), params (5M)]
+            self.modes = len(HOLD_MODES) if c.hold else 0
+            if c.hold:
+                head = torch.cat([m.hold.logits.weight.T, head], dim=1)
+                self.head_bias = torch.cat([m.hold.logits.bias, self.head_bias])
+                self.hold_sigma = m.hold.widths().exp()
+            self.param_offsets = (self.modes + m_count + torch.arange(5)).unsqueeze(0)
             self.w_head = head.contiguous().to(self.matmul_dtype)
             self.head_bias = self.head_bias.to(self.matmul_dtype)
             self.w_step = self.w_step.to(self.matmul_dtype)
@@ -164,20 +172,27 @@ class BatchedSampler:
             torch.mul(c, 2.0, out=squashed).sigmoid_().mul_(2.0).sub_(1.0)  # tanh(c)
             torch.mul(squashed, gates[:, o], out=h)
             head = torch.addmm(self.head_bias, h, self.w_head)
-            self._sample_head(head.to(c.dtype) if mixed else head, uniform[k], normal[k], offsets, actions[k])
+            previous = actions[k - 1] if k else ctx["present_action"].to(c.dtype).expand(rows, 2)  # full precision
+            self._sample_head(head.to(c.dtype) if mixed else head, uniform[k], normal[k], offsets, previous, actions[k])
             action.copy_(actions[k])
         return actions.transpose(0, 1)
 
     def _sample_head(self, head: torch.Tensor, uniform: torch.Tensor, normal: torch.Tensor, offsets: torch.Tensor,
-                     out: torch.Tensor) -> None:
-        """Draw one action per row into ``out [R, 2]`` from mixture parameters ``head [R, 6M]``,
-        uniforms ``[R]`` (component, inverse CDF) and normals ``[R, 2]``."""
-        m_count = self.components
-        cdf = torch.softmax(head[:, :m_count], dim=-1).cumsum_(-1)
+                     previous: torch.Tensor, out: torch.Tensor) -> None:
+        """Draw one action per row into ``out [R, 2]`` from output parameters ``head [R, modes + 6M]``,
+        uniforms ``[R]`` (hold mode and component, inverse CDF), normals ``[R, 2]`` and the
+        previous actions ``[R, 2]`` (the hold modes' centres)."""
+        m_count, modes = self.components, self.modes
+        if modes:
+            mode, uniform = split_uniform(torch.log_softmax(head[:, :modes], dim=-1), uniform)
+        cdf = torch.softmax(head[:, modes:modes + m_count], dim=-1).cumsum_(-1)
         k = (cdf < uniform.unsqueeze(-1)).sum(-1, keepdim=True).clamp_(max=m_count - 1)  # [R, 1]
         params = head.gather(1, 5 * k + offsets)  # [R, 5]: mu_x, mu_y, log_sigma_x, log_sigma_y, corr
         sigma = params[:, 2:4].clamp(-LOG_SIGMA_CLIP, LOG_SIGMA_CLIP).exp_()
         corr = torch.tanh(params[:, 4:5])
+        if modes:
+            out.copy_(compose_hold_sample(mode, params[:, :2], sigma, corr[:, 0], previous, self.hold_sigma, normal))
+            return
         correlated = normal.clone()
         correlated[:, 1:].mul_(torch.sqrt(1.0 - corr * corr)).addcmul_(corr, normal[:, :1])
         torch.addcmul(params[:, :2], sigma, correlated, out=out)

@@ -4,13 +4,18 @@ Loss per step: ``-mean log p(y|x,z) + β·Σ_vars max(batch-mean KL(q‖p), 0.07
 Gumbel-softmax samples of ``q`` per exemplar, on a batch of 32 with Gaussian noise on the
 standardised inputs and labels, recurrent dropout, dropout in p(z|x) and scheduled sampling in the
 decoder. Adam with exponentially decaying learning rate and gradient clipping by value.
+
+Fine-tuning (``init``) starts from a trained checkpoint, keeps its standardisation and variant, and
+runs its own schedule: a learning rate of its own, the KL weight and Gumbel-softmax temperature
+continued from where the initial model's training left them (``schedule_start``), a validation set
+(a split of the data, or given), and optional early stopping on it with the best weights kept.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Callable
 
@@ -21,9 +26,10 @@ from tqdm import tqdm
 
 from ..data.trials import TrialSet
 from ..errors import InputError
+from ..scenario import STATE_NAMES
 from .checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .cvae import CVAE, Batch, CVAEConfig
-from .evaluate import evaluate_tensors
+from .evaluate import evaluate_tensors, model_standardisation
 from .exemplars import ExemplarSet, Standardisation, build_exemplars, split_by_trial
 
 
@@ -54,6 +60,12 @@ class TrainConfig:
     validation_exemplars: int = 2048  # periodic validation uses a fixed subset; the final one uses all
     checkpoint_every: int = 1000
     seed: int = 0
+    schedule_start: int = 0  # step at which the KL-weight and temperature schedules start (fine-tuning)
+    patience: int = 0  # early stopping: validations without improvement before stopping (0: off)
+
+
+FINE_TUNING = {"lr_initial": 1e-4, "validate_every": 50, "checkpoint_every": 50}
+"""Defaults of a fine-tuning run (``train --init``) that differ from training from scratch."""
 
 
 def learning_rate(tc: TrainConfig, step: int) -> float:
@@ -62,19 +74,34 @@ def learning_rate(tc: TrainConfig, step: int) -> float:
 
 def temperature(tc: TrainConfig, step: int) -> float:
     """Gumbel-softmax temperature."""
+    step += tc.schedule_start
     return tc.temperature_final + (tc.temperature_initial - tc.temperature_final) * tc.temperature_decay ** step
 
 
 def kl_weight(tc: TrainConfig, step: int) -> float:
     """β: a sigmoid from ``beta_min`` to 1 centred on ``beta_crossover``."""
+    step += tc.schedule_start
     return tc.beta_min + (1.0 - tc.beta_min) / (1.0 + math.exp(-(step - tc.beta_crossover) / tc.beta_width))
 
 
-def _noisy(batch: Batch, sd: float) -> Batch:
-    """The batch with Gaussian noise of std ``sd`` on every standardised input and label."""
-    if sd <= 0.0:
-        return batch
-    return Batch(**{k: (v if k == "t" or v is None else v + sd * torch.randn_like(v)) for k, v in vars(batch).items()})
+LABELS = ("y", "human_present_action")
+"""The :class:`Batch` fields holding the human's actions (the labels and the decoder's first input)."""
+
+
+def _noisy(batch: Batch, sd: float, label_sd: float) -> Batch:
+    """The batch with Gaussian noise of std ``sd`` on every standardised input and ``label_sd`` on
+    the human's actions (:data:`LABELS`)."""
+    def noisy(name, v):
+        scale = label_sd if name in LABELS else sd
+        return v if name == "t" or v is None or scale <= 0.0 else v + scale * torch.randn_like(v)
+    return Batch(**{k: noisy(k, v) for k, v in vars(batch).items()})
+
+
+def label_noise(tc: TrainConfig, config: CVAEConfig) -> float:
+    """Noise std on the human's actions: the paper's ``input_noise``, except for the hold variant,
+    which learns that an action *equals* the previous one — independent noise on both would teach
+    it holds of the noise's width (0.07) instead."""
+    return 0.0 if config.hold else tc.input_noise
 
 
 def loss_terms(model: CVAE, batch: Batch, tc: TrainConfig, step: int) -> tuple[torch.Tensor, dict]:
@@ -114,27 +141,81 @@ class TrainResult:
     model: CVAE
     step: int
     history: list  # [(step, validation nll_exact)]
-    validation: dict  # the final full-validation summary (evaluate.Evaluation.summary)
+    validation: dict | None  # the final full-validation summary (evaluate.Evaluation.summary); None without validation
     steps_per_second: float
+    best_step: int | None = None  # with early stopping: the step whose weights were kept
 
 
-def prepare_data(trials: TrialSet, tc: TrainConfig) -> tuple[ExemplarSet, ExemplarSet, Standardisation]:
-    """Training and validation exemplars (split by trial) and the training-set standardisation."""
-    if len(trials) < 2:
-        raise InputError(f"need at least 2 trials to split into training and validation (got {len(trials)})")
-    train_idx, val_idx = split_by_trial(len(trials), tc.validation_fraction, tc.seed)
-    train_ex, val_ex = build_exemplars(trials.subset(train_idx)), build_exemplars(trials.subset(val_idx))
-    if len(train_ex) == 0 or len(val_ex) == 0:
-        raise InputError("no prediction exemplars (need human agents in trials of at least 21 steps)")
-    return train_ex, val_ex, Standardisation.fit(trials.subset(train_idx))
+NO_EXEMPLARS = "no prediction exemplars (need human agents in trials of at least 21 steps)"
 
 
-def train(trials: TrialSet, out: str | Path, variant: str = "cvae", tc: TrainConfig = TrainConfig(),
+def prepare_data(trials: TrialSet, tc: TrainConfig, validation: TrialSet | None = None
+                 ) -> tuple[ExemplarSet, ExemplarSet | None, Standardisation]:
+    """Training and validation exemplars and the training-set standardisation. The validation set
+    is ``validation`` when given, else a ``validation_fraction`` split of ``trials`` by trial
+    (none when the fraction is 0)."""
+    if validation is None and tc.validation_fraction > 0:
+        if len(trials) < 2:
+            raise InputError(f"need at least 2 trials to split into training and validation (got {len(trials)})")
+        train_idx, val_idx = split_by_trial(len(trials), tc.validation_fraction, tc.seed)
+        trials, validation = trials.subset(train_idx), trials.subset(val_idx)
+    train_ex = build_exemplars(trials)
+    val_ex = None if validation is None else build_exemplars(validation)
+    if len(train_ex) == 0 or (val_ex is not None and len(val_ex) == 0):
+        raise InputError(NO_EXEMPLARS)
+    return train_ex, val_ex, Standardisation.fit(trials)
+
+
+STANDARDISED_MEAN_LIMIT = 3.0
+STANDARDISED_STD_RANGE = (0.1, 10.0)
+
+
+def check_standardisation_fits(model: CVAE, exemplars: ExemplarSet, where: str) -> None:
+    """Refuse fine-tuning ``model`` on data its standardisation does not fit: every state feature of
+    the data, standardised with the model's statistics, must have a mean within
+    ``STANDARDISED_MEAN_LIMIT`` and a std within ``STANDARDISED_STD_RANGE`` (this catches other
+    units, other coordinate conventions and other time steps)."""
+    mean, std = model.feature_mean.double().cpu().numpy(), model.feature_std.double().cpu().numpy()
+    if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std > 0).all()):
+        raise InputError(f"{where}: its standardisation is not finite and positive (expected a trained model)")
+    rows = exemplars.streams.reshape(-1, exemplars.streams.shape[-1])
+    z = (rows[np.isfinite(rows).all(axis=1)] - mean) / std
+    for k, name in enumerate(STATE_NAMES):
+        m, s = float(z[:, k].mean()), float(z[:, k].std())
+        low, high = STANDARDISED_STD_RANGE
+        if abs(m) > STANDARDISED_MEAN_LIMIT or not low <= s <= high:
+            raise InputError(f"{where}: its standardisation does not fit the data ({name}: mean {m:+.1f}, std {s:.2f} "
+                             f"in the model's units; expected |mean| <= {STANDARDISED_MEAN_LIMIT:g} and std in "
+                             f"{low:g}..{high:g}, i.e. data in the same units and conventions)")
+
+
+def init_model(init: str | Path, variant: str | None, train_ex: ExemplarSet) -> tuple[CVAE, dict]:
+    """The model to fine-tune from checkpoint ``init`` and its provenance, refusing another variant
+    than ``variant`` (None: any) or a standardisation that does not fit the data."""
+    payload = read_checkpoint(init)
+    model = model_from_checkpoint(payload, init)
+    if variant is not None and model.config.name != variant:
+        raise InputError(f"--init {init}: a {model.config.name} model, but --variant {variant} was asked "
+                         f"(expected a checkpoint of the same variant)")
+    if not model.config.has_q:
+        raise InputError(f"--init {init}: the model has no recognition network q(z|x,y) (expected a model trained by trafficweaving)")
+    check_standardisation_fits(model, train_ex, f"--init {init}")
+    provenance = {"path": str(init), "variant": model.config.name, "step": int(payload.get("step", 0)),
+                  **{k: payload[k] for k in ("data_fingerprint", "recipe", "data_command") if k in payload}}
+    return model, provenance
+
+
+def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae", tc: TrainConfig = TrainConfig(),
           resume: str | Path | None = None, device: torch.device | str = "cpu",
-          progress: bool = True, log: Callable[[str], None] = print) -> TrainResult:
+          progress: bool = True, log: Callable[[str], None] = print, init: str | Path | None = None,
+          validation: TrialSet | None = None, recipe: str | None = None,
+          on_validate: Callable[[int, CVAE], None] | None = None) -> TrainResult:
     """Train a ``variant`` model on ``trials`` and write checkpoints to ``out`` (every
-    ``checkpoint_every`` steps and at the end). With ``resume``, continue the run saved in that
-    checkpoint (its configurations are used; the data must be the same)."""
+    ``checkpoint_every`` steps and at the end; None: no files). With ``resume``, continue the run
+    saved in that checkpoint (its configurations are used; the data must be the same). With
+    ``init``, fine-tune that checkpoint's model (``variant`` None: whatever it is). ``validation``
+    replaces the split of ``trials``; ``recipe`` is recorded in the checkpoint; ``on_validate(step,
+    model)`` is called after each validation."""
     device = torch.device(device)
     payload = read_checkpoint(resume) if resume else None
     if payload is not None:
@@ -143,21 +224,30 @@ def train(trials: TrialSet, out: str | Path, variant: str = "cvae", tc: TrainCon
         known = {f.name for f in fields(TrainConfig)}
         tc = TrainConfig(**{**{k: v for k, v in payload["train_config"].items() if k in known}, "steps": tc.steps})
 
-    train_ex, val_ex, standardisation = prepare_data(trials, tc)
+    train_ex, val_ex, standardisation = prepare_data(trials, tc, validation)
     fingerprint = train_ex.fingerprint()
+    extra = {} if recipe is None else {"recipe": recipe}
     if payload is not None:
         if payload.get("data_fingerprint") != fingerprint:
             raise InputError(f"{resume}: checkpoint was trained on different data (fingerprint mismatch)")
         model = model_from_checkpoint(payload, resume).to(device)  # same data, so the same standardisation
+        extra.update({k: payload[k] for k in ("init", "recipe") if k in payload})
+    elif init is not None:
+        torch.manual_seed(tc.seed)
+        model, extra["init"] = init_model(init, variant, train_ex)
+        model = model.to(device)
+        tc = replace(tc, schedule_start=extra["init"]["step"])
     else:
         torch.manual_seed(tc.seed)
-        model = CVAE(CVAEConfig.variant(variant)).to(device)
+        model = CVAE(CVAEConfig.variant(variant or "cvae")).to(device)
         with torch.no_grad():
             for name in ("feature_mean", "feature_std", "label_mean", "label_std"):
                 getattr(model, name).copy_(torch.as_tensor(getattr(standardisation, name)))
+    standardisation = model_standardisation(model)  # fine-tuning keeps the initial model's
     train_data = train_ex.standardised(standardisation, device)
-    val_data = val_ex.standardised(standardisation, device)
-    val_subset = torch.randperm(len(val_data), generator=torch.Generator().manual_seed(tc.seed))[: tc.validation_exemplars].to(device)
+    val_data = None if val_ex is None else val_ex.standardised(standardisation, device)
+    if val_data is not None:
+        val_subset = torch.randperm(len(val_data), generator=torch.Generator().manual_seed(tc.seed))[: tc.validation_exemplars].to(device)
 
     optimizer = torch.optim.Adam(model.parameters(), lr=tc.lr_initial)
     step, history = 0, []
@@ -166,36 +256,55 @@ def train(trials: TrialSet, out: str | Path, variant: str = "cvae", tc: TrainCon
         step, history = int(payload["step"]), [tuple(h) for h in payload.get("history", [])]
         torch.set_rng_state(payload["rng"])
     sampler = _Sampler(len(train_data), tc.batch_size, tc.seed)
-    log(f"training {model.config.name}: {len(train_ex)} training / {len(val_ex)} validation exemplars "
-        f"from {len(np.unique(train_ex.stream_trial))} / {len(np.unique(val_ex.stream_trial))} trials, "
+    count = lambda ex: "no" if ex is None else f"{len(ex)}"  # noqa: E731
+    trials_of = lambda ex: 0 if ex is None else len(np.unique(ex.stream_trial))  # noqa: E731
+    log(f"{'fine-tuning' if 'init' in extra else 'training'} {model.config.name}: {count(train_ex)} training / "
+        f"{count(val_ex)} validation exemplars from {trials_of(train_ex)} / {trials_of(val_ex)} trials, "
         f"steps {step}..{tc.steps} on {device}")
 
     def checkpoint(path):
-        save_checkpoint(path, model, step=step, history=history, data_fingerprint=fingerprint,
-                        train_config=asdict(tc), optimizer=optimizer.state_dict(), rng=torch.get_rng_state())
+        if path is not None:
+            save_checkpoint(path, model, step=step, history=history, data_fingerprint=fingerprint, **extra,
+                            train_config=asdict(tc), optimizer=optimizer.state_dict(), rng=torch.get_rng_state())
 
+    best = (math.inf, None, None)  # (validation NLL, step, weights) for early stopping
     start_step, start_time = step, time.perf_counter()
     bar = tqdm(total=tc.steps, initial=step, disable=not progress, desc=f"train {model.config.name}", unit="step")
     while step < tc.steps:
         model.train()
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(tc, step)
-        batch = _noisy(train_data.batch(sampler(step).to(device)), tc.input_noise)
+        batch = _noisy(train_data.batch(sampler(step).to(device)), tc.input_noise, label_noise(tc, model.config))
         loss, parts = loss_terms(model, batch, tc, step)
+        if not torch.isfinite(loss):
+            raise InputError(f"training diverged at step {step} (loss {loss.item()}; expected a smaller learning rate "
+                             f"than {learning_rate(tc, step):.3g})")
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_value_(model.parameters(), tc.clip_value)
         optimizer.step()
         step += 1
         bar.update(1)
-        if step % tc.validate_every == 0 or step == tc.steps:
+        if val_data is not None and (step % tc.validate_every == 0 or step == tc.steps):
             val = evaluate_tensors(model, val_data, index=val_subset).summary()["nll_exact"]
             history.append((step, val))
             bar.set_postfix(loss=f"{loss.item():.2f}", kl=f"{parts['kl']:.2f}", val_nll=f"{val:.3f}")
+            if on_validate is not None:
+                on_validate(step, model)
+            if tc.patience > 0:
+                if val < best[0]:
+                    best = (val, step, {k: v.clone() for k, v in model.state_dict().items()})
+                elif (step - best[1]) >= tc.patience * tc.validate_every:
+                    log(f"early stopping at step {step}: no improvement since step {best[1]} ({best[0]:.3f})")
+                    break
         if step % tc.checkpoint_every == 0 or step == tc.steps:
             checkpoint(out)
     bar.close()
     elapsed = time.perf_counter() - start_time
-    final = evaluate_tensors(model, val_data).summary()
+    steps_per_second = (step - start_step) / max(elapsed, 1e-9)
+    if best[2] is not None:
+        model.load_state_dict(best[2])
+        step = best[1]
+    final = None if val_data is None else evaluate_tensors(model, val_data).summary()
     checkpoint(out)
-    return TrainResult(model.eval(), step, history, final, (step - start_step) / max(elapsed, 1e-9))
+    return TrainResult(model.eval(), step, history, final, steps_per_second, best[1])
