@@ -88,6 +88,15 @@ def tables(results: dict[str, InstanceMetrics], variants: dict[str, str]) -> lis
               f"over the 1.5 s horizon, and minFDE, the smallest error at 1.5 s (m, means over instances).", "",
               "| model | minADE (m) | minFDE (m) |", "|---|---|---|"]
     lines += [f"| {n} | {fmt(r['min_ade_m'])} | {fmt(r['min_fde_m'])} |" for n, r in s.items()]
+    lines += ["", "## Held controls", "",
+              "Percentage of the 15 predicted steps whose acceleration changes by less than 0.01 m/s² from the step "
+              "before (a *held* pedal or steering wheel), in the sampled futures (mean over samples) and in the real "
+              "drivers' futures. Sampled behaviour, so a narrow density component cannot inflate it: a model that "
+              "learned intermittent control holds as often as the drivers do.", "",
+              "| model | x sampled | x real | y sampled | y real |", "|---|---|---|---|---|"]
+    pct1 = lambda v: "n/a" if v is None else f"{100 * v:.1f}"  # noqa: E731
+    lines += [f"| {n} | " + " | ".join(f"{pct1(r['held_fraction'][d]['sampled'])} | {pct1(r['held_fraction'][d]['true'])}"
+                                       for d in DIRECTIONS) + " |" for n, r in s.items()]
     return lines
 
 

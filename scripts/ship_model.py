@@ -1,14 +1,20 @@
 """Put a trained checkpoint into the package as the model ``--model default`` loads.
 
-    python scripts/ship_model.py out/train/cvae_default.pt --data-command "trafficweaving generate --trials 4000 --seed 0"
+    python scripts/ship_model.py runs/shipped.pt --data-command "trafficweaving import hitl ..." \\
+        --summary "pre-trained on simulated drivers, fine-tuned on 30 real trials" \\
+        --recipe "$(cat recipe.txt)" --crossval runs/crossval.json
 
-Drops the optimizer and RNG state (only resuming needs them) and records how the training data
-was made.
+Drops the optimizer and RNG state (only resuming needs them) and records how the training data was
+made, the whole recipe, a one-line summary and the cross-validation that chose the recipe (the
+JSON of ``trafficweaving crossval --json``). A fine-tuned checkpoint already carries its initial
+model's provenance (``init``: path, variant, step, data fingerprint), so the shipped file holds both
+data fingerprints.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 
 from trafficweaving.model.checkpoint import default_model_path, export_checkpoint
 
@@ -16,9 +22,19 @@ from trafficweaving.model.checkpoint import default_model_path, export_checkpoin
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint", help="a checkpoint written by `trafficweaving train`")
-    parser.add_argument("--data-command", required=True, help="the command that made the training data")
+    parser.add_argument("--data-command", required=True, help="the command that made the (last) training data")
+    parser.add_argument("--recipe", help="every command of the recipe, from data to this checkpoint")
+    parser.add_argument("--summary", help="one line: what the model was trained on")
+    parser.add_argument("--crossval", help="the JSON printed by `trafficweaving crossval --json` for this recipe")
     args = parser.parse_args()
-    export_checkpoint(args.checkpoint, default_model_path(), data_command=args.data_command)
+    provenance = {"data_command": args.data_command}
+    for key in ("recipe", "summary"):
+        if getattr(args, key):
+            provenance[key] = getattr(args, key)
+    if args.crossval:
+        with open(args.crossval) as f:
+            provenance["crossval"] = json.load(f)
+    export_checkpoint(args.checkpoint, default_model_path(), **provenance)
     print(f"wrote {default_model_path()}")
 
 

@@ -126,6 +126,13 @@ def test_train_then_evaluate_a_checkpoint(capsys, tmp_path):
     (["predict", "--model", "MODEL", "--data", "DATA", "--at", "0", "--out", "f.png"], "expected TRIAL:T"),
     (["predict", "--model", "MODEL", "--data", "DATA", "--at", "0:2", "--out", "f.png"], "t must be within 4.."),
     (["predict", "--model", "MODEL", "--data", "DATA", "--at", "99:5", "--out", "f.png"], "trial index 99 is outside"),
+    (["train", "--data", "DATA", "--out", "x.pt", "--init", "MODEL", "--variant", "cvae-hold"], "a cvae model, but --variant cvae-hold"),
+    (["train", "--data", "DATA", "--out", "x.pt", "--init", "MODEL"], "its standardisation does not fit the data"),
+    (["train", "--data", "DATA", "--out", "x.pt", "--init", "MODEL", "--resume", "MODEL"], "exclude each other"),
+    (["train", "--data", "DATA", "--out", "x.pt", "--init", "MODEL", "--lr", "2"], "--lr must be a learning rate"),
+    (["crossval", "--data", "DATA", "--folds", "5"], "fewer than --folds 5"),
+    (["crossval", "--data", "DATA", "--folds", "1"], "--folds must be at least 2"),
+    (["crossval", "--data", "DATA", "--folds", "2", "--init", "nope.pt"], "nope.pt: no such file"),
 ])
 def test_model_commands_reject_bad_input_in_one_line(capsys, tmp_path, argv, message):
     from trafficweaving.model.checkpoint import save_checkpoint
@@ -138,6 +145,32 @@ def test_model_commands_reject_bad_input_in_one_line(capsys, tmp_path, argv, mes
     argv = [a.replace("nope", str(tmp_path / "nope")) for a in argv]
     code, out, err = run(capsys, *argv)
     assert code == 2 and message in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_crossval_rejects_data_without_human_agents(capsys, tmp_path):
+    from trafficweaving.data.trials import load_trials
+
+    data = tmp_path / "d.parquet"
+    run(capsys, "generate", "--trials", 6, "--seed", 1, "--out", data, "--json")
+    robots = load_trials(data)
+    robots.roles[:] = "robot"
+    robots.write_parquet(tmp_path / "robots.parquet")
+    code, _, err = run(capsys, "crossval", "--data", tmp_path / "robots.parquet", "--folds", 3)
+    assert code == 2 and "no prediction instances" in err and "expected agents with role 'human'" in err
+    assert err.count("\n") == 1
+
+
+def test_crossval_json_reports_folds_mean_and_reference(capsys, tmp_path):
+    data, model = tmp_path / "d.parquet", tmp_path / "m.pt"
+    run(capsys, "generate", "--trials", 9, "--seed", 3, "--out", data, "--json")
+    run(capsys, "train", "--data", data, "--out", model, "--steps", 2, "--variant", "cvae-hold", "--json")
+    code, out, _ = run(capsys, "crossval", "--data", data, "--folds", 3, "--init", model, "--steps", 4,
+                       "--validate-every", 2, "--reference", model, "--out", tmp_path / "folds", "--json")
+    report = json.loads(out)
+    assert code == 0 and len(report["folds"]) == 3 and report["steps"] in (0, 2, 4)
+    assert report["nll_exact"] == pytest.approx(sum(report["folds"]) / 3)
+    assert len(report["reference"]["folds"]) == 3 and [s for s, _ in report["curve"]] == [0, 2, 4]
+    assert sorted(p.name for p in (tmp_path / "folds").iterdir()) == ["fold_1.pt", "fold_2.pt", "fold_3.pt"]
 
 
 def test_default_model_is_shipped_trained_and_evaluates(capsys, tmp_path):

@@ -178,3 +178,12 @@ def test_real_humans_report_script_writes_tables_figures_and_its_command(tmp_pat
     assert "python scripts/real_humans_report.py --data" in text and "## Coverage of the human's position" in text
     assert "| a | x |" in text and "| b | y |" in text and "minFDE" in text
     assert len(list((tmp_path / "docs" / "figures").glob("real_humans_*.png"))) == 3
+
+
+def test_held_fraction_counts_steps_that_keep_the_previous_acceleration():
+    from trafficweaving.model.metrics import held_fraction
+
+    present = torch.tensor([1.0, -0.5], dtype=torch.float64)
+    actions = torch.tensor([[1.0, -0.5]] * 5 + [[2.0, -0.495]] * 5 + [[2.0 + 0.02 * k, 0.3] for k in range(5)],
+                           dtype=torch.float64)  # x: held 5 + 4 + 1 steps; y: 5 + 1 (by 0.005) + 4 + 4 steps
+    np.testing.assert_allclose(held_fraction(present, actions).numpy(), [10 / 15, 14 / 15])

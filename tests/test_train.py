@@ -230,3 +230,17 @@ def test_crossval_rejects_too_few_trials_or_no_humans(trials):
     robots.roles[:] = "robot"
     with pytest.raises(InputError, match="no prediction instances"):
         crossval(robots, 3, QUICK, progress=False, log=lambda _: None)
+
+
+def test_hold_widths_learn_at_their_own_rate(pretrained, trials, tmp_path):
+    from dataclasses import replace
+
+    from trafficweaving.model.train import make_optimizer
+
+    initial, _ = load_checkpoint(pretrained)
+    groups = make_optimizer(initial, TrainConfig()).param_groups
+    assert [g["lr"] for g in groups] == [1e-3, 1e-2] and groups[1]["params"][0] is initial.hold.log_sigma
+    tc = replace(QUICK, steps=20, lr_initial=1e-5, lr_final=1e-5)
+    result = train(trials, tmp_path / "w.pt", None, tc, init=pretrained, progress=False, log=lambda _: None)
+    moved = (result.model.hold.log_sigma - initial.hold.log_sigma).abs().max().item()
+    assert moved > 20 * 1e-4  # far more than the rest of the model's learning rate allows (Adam: ~lr per step)

@@ -13,6 +13,11 @@ instance's lane-change phase, and metrics of sampled human futures (positions).
   interpolated). A calibrated model covers the truth in 50 % and 90 % of instances.
 * **minADE / minFDE.** Over the first ``ade_samples`` samples: the smallest mean (ADE) and final
   (FDE, 1.5 s) Euclidean position error, m.
+* **Holds.** The fraction of the 15 steps whose acceleration changes by less than
+  :data:`~trafficweaving.data.behaviour.HOLD_TOLERANCE` from the step before (the present action
+  for the first), per direction, in the sampled futures (mean over samples) and in the truth: a
+  model that learned drivers' intermittent control samples holds as often as they happen; no
+  narrow density component can fake that.
 * **Phase** of an instance at present step ``t`` relative to its human's lane change
   (:func:`~trafficweaving.data.behaviour.lane_change_events`): ``before`` if ``t < start``,
   ``during`` if ``start <= t < end`` (``end`` not recorded: the crossing plus
@@ -35,7 +40,7 @@ import pyarrow.parquet as pq
 import torch
 
 from ..atomic import atomic_write
-from ..data.behaviour import lane_change_events
+from ..data.behaviour import HOLD_TOLERANCE, lane_change_events
 from ..data.trials import TrialSet
 from ..scenario import DT
 from .cvae import CVAE, HORIZON
@@ -78,11 +83,20 @@ def true_positions(exemplars: ExemplarSet, index: np.ndarray) -> np.ndarray:
 class SampledMetrics:
     """Metrics of sampled futures for ``E'`` instances: ``covered [E', 2, 3, L]`` (direction,
     horizon of :data:`HORIZON_STEPS`, level) whether the truth lies in the central interval;
-    ``min_ade``, ``min_fde`` ``[E']`` (m)."""
+    ``min_ade``, ``min_fde`` ``[E']`` (m); ``held [E', 2, 2]`` (sampled, true; direction) the
+    fraction of held steps."""
 
     covered: np.ndarray
     min_ade: np.ndarray
     min_fde: np.ndarray
+    held: np.ndarray
+
+
+def held_fraction(present: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """Fraction ``[..., 2]`` of the steps of ``actions [..., 15, 2]`` (m/s²) that change by less
+    than ``HOLD_TOLERANCE`` from the step before, the first from ``present [..., 2]``."""
+    previous = torch.cat([present.unsqueeze(-2).expand(*actions.shape[:-2], 1, 2), actions[..., :-1, :]], dim=-2)
+    return ((actions - previous).abs() < HOLD_TOLERANCE).double().mean(-2)
 
 
 @torch.no_grad()
@@ -105,7 +119,7 @@ def sampled_metrics(model: CVAE, exemplars: ExemplarSet, index: np.ndarray, samp
     bounds = torch.tensor([q for level in levels for q in (0.5 - level / 2, 0.5 + level / 2)],
                           dtype=torch.float64, device=device)
     steps = torch.tensor(HORIZON_STEPS, device=device) - 1
-    covered, ade, fde = [], [], []
+    covered, ade, fde, held = [], [], [], []
     batch_size = max(1, ROLLOUTS_PER_BATCH // draws)
     for start in range(0, len(index), batch_size):
         rows = slice(start, start + batch_size)
@@ -125,8 +139,12 @@ def sampled_metrics(model: CVAE, exemplars: ExemplarSet, index: np.ndarray, samp
         error = torch.linalg.vector_norm(positions[:ade_samples] - true, dim=-1)  # [k, B, 15]
         ade.append(error.mean(-1).min(0).values)
         fde.append(error[..., -1].min(0).values)
+        s_rows, t_rows = s[rows], t[rows]
+        true_actions = torch.as_tensor(exemplars.streams[s_rows[:, None], t_rows[:, None] + np.arange(1, HORIZON + 1), 1, ACCEL], device=device)
+        present_action = present[rows, 4:6]
+        held.append(torch.stack([held_fraction(present_action, actions).mean(0), held_fraction(present_action, true_actions)], 1))
     cat = lambda parts: torch.cat(parts).cpu().numpy()  # noqa: E731
-    return SampledMetrics(cat(covered), cat(ade), cat(fde))
+    return SampledMetrics(cat(covered), cat(ade), cat(fde), cat(held))
 
 
 def instance_phases(trials: TrialSet, exemplars: ExemplarSet) -> np.ndarray:
@@ -147,7 +165,7 @@ class InstanceMetrics:
     """Everything measured per instance ``[E]``: identification (``trial_id``, ``source``,
     ``agent`` the human, ``t`` the present step, ``phase``), the NLLs (``evaluation``), and the
     sampled metrics of the instances ``sampled [E]`` (bool; ``covered [E, 2, 3, L]``, ``min_ade``,
-    ``min_fde`` in m, NaN / False where not sampled) over ``samples`` futures (``ade_samples`` for
+    ``min_fde`` in m, ``held [E, 2, 2]`` as in :class:`SampledMetrics`; NaN / False where not sampled) over ``samples`` futures (``ade_samples`` for
     minADE/minFDE) at ``levels``."""
 
     trial_id: np.ndarray
@@ -160,6 +178,7 @@ class InstanceMetrics:
     covered: np.ndarray
     min_ade: np.ndarray
     min_fde: np.ndarray
+    held: np.ndarray
     samples: int
     ade_samples: int
     levels: tuple[float, ...]
@@ -178,7 +197,7 @@ class InstanceMetrics:
                                 None if any(e.nll_is is None for e in ev) else np.concatenate([e.nll_is for e in ev]),
                                 np.concatenate([e.nll_naive for e in ev]), np.concatenate([e.nll_direction for e in ev]))
         return InstanceMetrics(*(cat(n) for n in ("trial_id", "source", "agent", "t", "phase")), evaluation,
-                               *(cat(n) for n in ("sampled", "covered", "min_ade", "min_fde")),
+                               *(cat(n) for n in ("sampled", "covered", "min_ade", "min_fde", "held")),
                                first.samples, first.ade_samples, first.levels)
 
     def coverage(self) -> dict:
@@ -193,7 +212,8 @@ class InstanceMetrics:
         """JSON-ready means: :meth:`Evaluation.summary`'s keys, then ``nll_exact_by_direction``
         (``{"x", "y"}``), ``nll_exact_by_phase`` (``{phase: {"instances", "nll_exact"}}``),
         ``sampled_instances``, ``samples``, ``ade_samples``, ``coverage`` (:meth:`coverage`),
-        ``min_ade_m`` and ``min_fde_m`` (None when no instance was sampled)."""
+        ``min_ade_m``, ``min_fde_m`` and ``held_fraction`` (``{"x"|"y": {"sampled", "true"}}``;
+        None when no instance was sampled)."""
         mean = lambda a: float(np.mean(a)) if len(a) else None  # noqa: E731
         nll = self.evaluation.nll_exact
         return {
@@ -207,6 +227,8 @@ class InstanceMetrics:
             "coverage": self.coverage(),
             "min_ade_m": mean(self.min_ade[self.sampled]),
             "min_fde_m": mean(self.min_fde[self.sampled]),
+            "held_fraction": {name: {"sampled": mean(self.held[self.sampled, 0, d]), "true": mean(self.held[self.sampled, 1, d])}
+                              for d, name in enumerate(DIRECTIONS)},
         }
 
     def to_table(self, metadata: dict | None = None) -> pa.Table:
@@ -224,6 +246,9 @@ class InstanceMetrics:
             "sampled": self.sampled,
             "min_ade_m": pa.array(self.min_ade, mask=missing), "min_fde_m": pa.array(self.min_fde, mask=missing),
         }
+        for d, name in enumerate(DIRECTIONS):
+            columns[f"held_{name}_sampled"] = pa.array(self.held[:, 0, d], mask=missing)
+            columns[f"held_{name}_true"] = pa.array(self.held[:, 1, d], mask=missing)
         for d, name in enumerate(DIRECTIONS):
             for h, step in enumerate(HORIZON_STEPS):
                 for k, level in enumerate(self.levels):
@@ -254,15 +279,16 @@ def evaluate_instances(model: CVAE, trials: TrialSet, exemplars: ExemplarSet, sa
     sampled[index] = True
     covered = np.zeros((n, len(DIRECTIONS), len(HORIZON_STEPS), len(levels)), dtype=bool)
     min_ade, min_fde = np.full(n, np.nan), np.full(n, np.nan)
+    held = np.full((n, 2, len(DIRECTIONS)), np.nan)
     if len(index):
         metrics = sampled_metrics(model, exemplars, index, samples, ade_samples, levels, seed, data)
-        covered[index], min_ade[index], min_fde[index] = metrics.covered, metrics.min_ade, metrics.min_fde
+        covered[index], min_ade[index], min_fde[index], held[index] = metrics.covered, metrics.min_ade, metrics.min_fde, metrics.held
     return InstanceMetrics(
         trial_id=trials.trial_ids[exemplars.stream_trial[exemplars.stream]],
         source=exemplars.sources[exemplars.stream],
         agent=exemplars.stream_agent[exemplars.stream],
         t=exemplars.t,
         phase=instance_phases(trials, exemplars),
-        evaluation=evaluation, sampled=sampled, covered=covered, min_ade=min_ade, min_fde=min_fde,
+        evaluation=evaluation, sampled=sampled, covered=covered, min_ade=min_ade, min_fde=min_fde, held=held,
         samples=samples, ade_samples=ade_samples, levels=tuple(levels),
     )

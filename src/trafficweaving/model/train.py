@@ -60,6 +60,7 @@ class TrainConfig:
     validation_exemplars: int = 2048  # periodic validation uses a fixed subset; the final one uses all
     checkpoint_every: int = 1000
     seed: int = 0
+    hold_width_lr: float = 1e-2  # constant learning rate of the hold variant's two widths (log s)
     schedule_start: int = 0  # step at which the KL-weight and temperature schedules start (fine-tuning)
     patience: int = 0  # early stopping: validations without improvement before stopping (0: off)
 
@@ -117,6 +118,18 @@ def loss_terms(model: CVAE, batch: Batch, tc: TrainConfig, step: int) -> tuple[t
     nll = -log_p_y.mean()
     beta = kl_weight(tc, step)
     return nll + beta * kl, {"nll": nll.item(), "kl": kl_per_var.sum().item(), "beta": beta}
+
+
+def make_optimizer(model: CVAE, tc: TrainConfig) -> torch.optim.Adam:
+    """Adam over every parameter. The hold variant's widths get their own constant learning rate
+    (``hold_width_lr``, a second group): Adam moves a parameter by about its learning rate per step,
+    and the widths must be able to travel from the simulator's exact holds to real drivers' (a
+    factor of a few in ``s``) within a short fine-tuning."""
+    if model.hold is None:
+        return torch.optim.Adam(model.parameters(), lr=tc.lr_initial)
+    widths = model.hold.log_sigma
+    rest = [p for p in model.parameters() if p is not widths]
+    return torch.optim.Adam([{"params": rest, "lr": tc.lr_initial}, {"params": [widths], "lr": tc.hold_width_lr}])
 
 
 class _Sampler:
@@ -249,7 +262,7 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
     if val_data is not None:
         val_subset = torch.randperm(len(val_data), generator=torch.Generator().manual_seed(tc.seed))[: tc.validation_exemplars].to(device)
 
-    optimizer = torch.optim.Adam(model.parameters(), lr=tc.lr_initial)
+    optimizer = make_optimizer(model, tc)
     step, history = 0, []
     if payload is not None:
         optimizer.load_state_dict(payload["optimizer"])
@@ -272,8 +285,7 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
     bar = tqdm(total=tc.steps, initial=step, disable=not progress, desc=f"train {model.config.name}", unit="step")
     while step < tc.steps:
         model.train()
-        for group in optimizer.param_groups:
-            group["lr"] = learning_rate(tc, step)
+        optimizer.param_groups[0]["lr"] = learning_rate(tc, step)
         batch = _noisy(train_data.batch(sampler(step).to(device)), tc.input_noise, label_noise(tc, model.config))
         loss, parts = loss_terms(model, batch, tc, step)
         if not torch.isfinite(loss):
