@@ -114,6 +114,12 @@ def test_train_then_evaluate_a_checkpoint(capsys, tmp_path):
     assert report["nll_exact"] == pytest.approx(report["nll_is"]) == pytest.approx(report["nll_naive"])
     code, out, _ = run(capsys, "train", "--data", data, "--out", model, "--steps", 6, "--resume", model, "--json")
     assert code == 0 and json.loads(out)["steps"] == 6
+    # fine-tune on every trial (no validation split), as the shipped model is made
+    tuned = tmp_path / "tuned.pt"
+    code, out, _ = run(capsys, "train", "--data", data, "--out", tuned, "--init", model, "--steps", 3,
+                       "--validation-fraction", 0, "--json")
+    report = json.loads(out)
+    assert code == 0 and report["variant"] == "lstm" and report["nll_exact"] is None and report["init"] == str(model)
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -130,8 +136,11 @@ def test_train_then_evaluate_a_checkpoint(capsys, tmp_path):
     (["train", "--data", "DATA", "--out", "x.pt", "--init", "MODEL"], "its standardisation does not fit the data"),
     (["train", "--data", "DATA", "--out", "x.pt", "--init", "MODEL", "--resume", "MODEL"], "exclude each other"),
     (["train", "--data", "DATA", "--out", "x.pt", "--init", "MODEL", "--lr", "2"], "--lr must be a learning rate"),
+    (["train", "--data", "DATA", "--out", "x.pt", "--validation-fraction", "1"], "--validation-fraction must be in [0, 1)"),
+    (["train", "--data", "DATA", "--out", "x.pt", "--validation-fraction", "0", "--patience", "3"], "--patience needs a validation set"),
     (["crossval", "--data", "DATA", "--folds", "5"], "fewer than --folds 5"),
     (["crossval", "--data", "DATA", "--folds", "1"], "--folds must be at least 2"),
+    (["crossval", "--data", "DATA", "--folds", "2", "--beat-reference"], "--beat-reference needs a --reference"),
     (["crossval", "--data", "DATA", "--folds", "2", "--init", "nope.pt"], "nope.pt: no such file"),
 ])
 def test_model_commands_reject_bad_input_in_one_line(capsys, tmp_path, argv, message):
@@ -177,13 +186,19 @@ def test_default_model_is_shipped_trained_and_evaluates(capsys, tmp_path):
     from trafficweaving.model.checkpoint import default_model_path, read_checkpoint
 
     payload = read_checkpoint(default_model_path())
-    assert "optimizer" not in payload and payload["data_command"].startswith("trafficweaving generate")
-    assert payload["config"]["latent_vars"] == 2 and payload["config"]["components"] == 16
+    assert "optimizer" not in payload and payload["data_command"].startswith("trafficweaving import hitl")
+    assert payload["config"]["hold"] and payload["config"]["components"] == 16
+    # pre-trained on simulated drivers, then fine-tuned: both data fingerprints and the recipe
+    assert len(payload["init"]["data_fingerprint"]) == len(payload["data_fingerprint"]) == 64
+    assert payload["init"]["data_fingerprint"] != payload["data_fingerprint"]
+    assert "trafficweaving crossval" in payload["recipe"] and "trafficweaving generate" in payload["recipe"]
+    cv = payload["crossval"]  # the cross-validation that chose the schedule: better than the authors' on every fold
+    assert len(cv["folds"]) == 5 and all(a < b for a, b in zip(cv["folds"], cv["reference"]["folds"]))
     data = tmp_path / "fresh.parquet"  # trials the shipped model never saw (another seed)
     run(capsys, "generate", "--trials", 20, "--seed", 12345, "--out", data, "--json")
-    code, out, _ = run(capsys, "evaluate", "--model", "default", "--data", data, "--json")
+    code, out, _ = run(capsys, "evaluate", "--model", "default", "--data", data, "--json", "--max-sampled-instances", 0)
     report = json.loads(out)
-    assert code == 0 and report["variant"] == "cvae" and report["instances"] > 500
+    assert code == 0 and report["variant"] == "cvae-hold" and report["instances"] > 500
     # an untrained model scores about +30 nats here; the trained one predicts simulated humans
     assert report["nll_exact"] < 0
     assert report["nll_exact"] <= report["nll_is"] + 0.5 and report["nll_exact"] <= report["nll_naive"] + 0.5

@@ -202,6 +202,22 @@ def test_crossval_chooses_steps_by_the_mean_curve_and_nests_the_choice():
     assert summary["reference"] == {"model": "ref", "folds": [-1.0, -2.0, -3.0], "nll_exact": -2.0}
 
 
+def test_crossval_can_require_every_fold_to_beat_the_reference():
+    from trafficweaving.model.crossval import CrossvalResult
+
+    curves = np.array([[0.0, -3.0, -4.0], [0.0, -3.0, -4.0], [0.0, -2.5, -1.5]])
+    reference = np.array([-1.0, -1.0, -2.0])
+    free = CrossvalResult([np.arange(2)] * 3, np.array([0, 50, 100]), curves, np.array([10] * 3), reference, "ref")
+    assert free.summary()["steps"] == 100  # best mean (-3.17), but fold 3 (-1.5) is worse than the reference (-2.0)
+    from dataclasses import replace
+
+    summary = replace(free, beat_reference=True).summary()
+    assert summary["steps"] == 50 and summary["folds"] == [-3.0, -3.0, -2.5]
+    assert summary["selection"] == "mean, every fold better than the reference"
+    # without fold 3 the constraint does not bind: folds 1 and 2 choose 100 steps; fold 3 is scored there
+    assert summary["nested"]["steps"] == [50, 50, 100]
+
+
 def test_crossval_fine_tunes_each_fold_and_scores_the_reference(pretrained, trials, tmp_path):
     from dataclasses import replace
 

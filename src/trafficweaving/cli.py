@@ -147,7 +147,12 @@ def _train_config(args):
         raise InputError(f"--patience must be 0 (off) or a positive integer, got {args.patience}")
     if args.lr is not None and not 0 < args.lr < 1:
         raise InputError(f"--lr must be a learning rate in (0, 1), got {args.lr}")
-    tc = TrainConfig(steps=args.steps, seed=args.seed)
+    fraction = getattr(args, "validation_fraction", 0.2)
+    if not 0 <= fraction < 1:
+        raise InputError(f"--validation-fraction must be in [0, 1), got {fraction}")
+    if fraction == 0 and (getattr(args, "patience", None) or 0) > 0:
+        raise InputError("--patience needs a validation set (expected --validation-fraction above 0)")
+    tc = TrainConfig(steps=args.steps, seed=args.seed, validation_fraction=fraction)
     if args.init:
         tc = replace(tc, **FINE_TUNING)
     overrides = {"lr_initial": args.lr, "validate_every": args.validate_every,
@@ -191,7 +196,7 @@ def cmd_crossval(args) -> None:
     trials = load_trials(args.data)
     result = crossval(trials, args.folds, tc, variant=args.variant, init=args.init, reference=args.reference,
                       seed=args.seed, device=choose_device(args.device), progress=not args.json, log=_log(args),
-                      out=args.out)
+                      out=args.out, beat_reference=args.beat_reference)
     summary = result.summary()
     payload = {**summary, "data": args.data, "init": args.init, "variant": args.variant, "out": args.out}
     ref = summary["reference"]
@@ -467,6 +472,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_schedule_options(p, steps=50_000)
     p.add_argument("--patience", type=int, help="early stopping: validations without improvement before stopping "
                                                 "(default 0: off); the best weights are kept")
+    p.add_argument("--validation-fraction", type=float, default=0.2,
+                   help="fraction of the trials held out for validation, split by trial (0: train on all, no validation)")
     p.add_argument("--resume", help="continue the run saved in this training checkpoint")
     p.set_defaults(func=cmd_train)
 
@@ -475,6 +482,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--folds", type=int, default=5)
     p.add_argument("--reference", help="a model scored on the same folds (checkpoint, default, or authors:PATH)")
     p.add_argument("--out", help="folder for each fold's model at the chosen steps (fold_K.pt, with its held-out trials)")
+    p.add_argument("--beat-reference", action="store_true",
+                   help="choose the steps only among those where every fold beats the --reference model")
     _add_schedule_options(p, steps=1000)
     p.set_defaults(func=cmd_crossval)
 

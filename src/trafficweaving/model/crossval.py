@@ -1,10 +1,10 @@
 """k-fold cross-validation by trial: train (or fine-tune) on k−1 folds, score the held-out fold.
 
 Every fold's held-out exact NLL is recorded along training (a curve over steps), so the number of
-steps is chosen by the folds: ``chosen_step`` minimises the mean held-out curve, and
-``nested`` scores each fold at the step chosen from the *other* folds' curves alone, an estimate
-that no choice made on a fold flatters. A reference model (e.g. the authors') is scored on the same
-folds. With ``out``, each fold's model at the chosen step is saved (``fold_K.pt``, K = 1..k) with
+steps is chosen by the folds: the chosen step minimises the mean held-out curve (optionally only
+among the steps at which every fold beats the reference model), and ``nested`` scores each fold at
+the step chosen the same way from the *other* folds' curves alone, an estimate that no choice made
+on a fold flatters. A reference model (e.g. the authors') is scored on the same folds. With ``out``, each fold's model at the chosen step is saved (``fold_K.pt``, K = 1..k) with
 the trial ids it held out, so out-of-fold predictions of every trial can be analysed
 (:func:`out_of_fold_models`).
 """
@@ -45,16 +45,28 @@ class CrossvalResult:
     instances: np.ndarray
     reference: np.ndarray | None = None
     reference_name: str | None = None
+    beat_reference: bool = False  # choose only among steps where every fold beats the reference
+
+    def _choose(self, folds: np.ndarray) -> int:
+        """Index into ``steps`` minimising the mean over ``folds`` (indices) of the held-out NLL,
+        among the steps where each of those folds beats the reference when ``beat_reference``
+        (all steps if there is none)."""
+        mean = self.curves[folds].mean(0)
+        if self.beat_reference and self.reference is not None:
+            better = (self.curves[folds] < self.reference[folds, None]).all(0)
+            if better.any():
+                mean = np.where(better, mean, np.inf)
+        return int(np.argmin(mean))
 
     @property
     def chosen(self) -> int:
-        """Index into ``steps`` minimising the mean held-out NLL over folds."""
-        return int(np.argmin(self.curves.mean(0)))
+        """Index into ``steps`` chosen from every fold's curve."""
+        return self._choose(np.arange(len(self.curves)))
 
     def nested(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per fold: the step chosen from the other folds' mean curve, and the fold's NLL there."""
+        """Per fold: the step chosen from the other folds' curves, and the fold's NLL there."""
         k = len(self.curves)
-        picks = np.array([np.argmin(np.delete(self.curves, i, axis=0).mean(0)) for i in range(k)])
+        picks = np.array([self._choose(np.delete(np.arange(k), i)) for i in range(k)])
         return self.steps[picks], self.curves[np.arange(k), picks]
 
     def summary(self) -> dict:
@@ -71,6 +83,7 @@ class CrossvalResult:
             "curve": [[int(s), float(v)] for s, v in zip(self.steps, self.curves.mean(0))],
             "trials_per_fold": [len(f) for f in self.fold_trials],
             "instances_per_fold": [int(n) for n in self.instances],
+            "selection": "mean" + (", every fold better than the reference" if self.beat_reference else ""),
             "reference": None,
         }
         if self.reference is not None:
@@ -82,11 +95,15 @@ class CrossvalResult:
 def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), variant: str | None = None,
              init: str | Path | None = None, reference: str | None = None, seed: int = 0,
              device: torch.device | str = "cpu", progress: bool = True,
-             log: Callable[[str], None] = print, out: str | Path | None = None) -> CrossvalResult:
+             log: Callable[[str], None] = print, out: str | Path | None = None,
+             beat_reference: bool = False) -> CrossvalResult:
     """Cross-validate training ``variant`` from scratch, or fine-tuning ``init``, with schedule
     ``tc`` (its ``steps`` is the longest schedule tried; the held-out folds are scored every
     ``validate_every`` steps, and at step 0 when fine-tuning). Folds are by trial, seeded. With
-    ``out`` (a folder), save each fold's model at the chosen step."""
+    ``out`` (a folder), save each fold's model at the chosen step; with ``beat_reference``, choose
+    only among steps where every fold beats ``reference``."""
+    if beat_reference and reference is None:
+        raise InputError("--beat-reference needs a --reference model to beat")
     if folds < 2:
         raise InputError(f"--folds must be at least 2, got {folds}")
     if len(trials) < folds:
@@ -123,7 +140,7 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
             + (f"; reference {ref[-1]:.2f}" if ref else ""))
     steps = np.array([s for s, _ in history])
     result = CrossvalResult(parts, steps, np.array(curves), np.array(instances),
-                            np.array(ref) if ref else None, reference)
+                            np.array(ref) if ref else None, reference, beat_reference)
     if out is not None:
         _save_fold_models(Path(out), result, snapshots)
     return result

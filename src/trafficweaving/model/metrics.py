@@ -165,8 +165,8 @@ class InstanceMetrics:
     """Everything measured per instance ``[E]``: identification (``trial_id``, ``source``,
     ``agent`` the human, ``t`` the present step, ``phase``), the NLLs (``evaluation``), and the
     sampled metrics of the instances ``sampled [E]`` (bool; ``covered [E, 2, 3, L]``, ``min_ade``,
-    ``min_fde`` in m, ``held [E, 2, 2]`` as in :class:`SampledMetrics`; NaN / False where not sampled) over ``samples`` futures (``ade_samples`` for
-    minADE/minFDE) at ``levels``."""
+    ``min_fde`` in m, ``held [E, 2, 2]`` as in :class:`SampledMetrics`; NaN / False where not
+    sampled) over ``samples`` futures (``ade_samples`` for minADE/minFDE) at ``levels``."""
 
     trial_id: np.ndarray
     source: np.ndarray
