@@ -21,6 +21,7 @@ import torch
 from ..data.trials import TrialSet
 from ..errors import InputError
 from .checkpoint import load_checkpoint, load_model, save_checkpoint
+from .cvae import CVAE
 from .evaluate import evaluate
 from .exemplars import build_exemplars
 from .train import NO_EXEMPLARS, TrainConfig, train
@@ -123,14 +124,14 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
                              f"in trials of at least 21 steps; try fewer folds)")
         log(f"fold {k + 1}/{folds}: {len(rest)} training trials, {len(held)} held out ({len(held_ex)} instances)")
         weights = {}  # step -> CPU copy of the fold's weights, for saving the chosen step's model
-        keep = lambda step, model: weights.__setitem__(step, {k: v.detach().cpu().clone() for k, v in model.state_dict().items()})  # noqa: E731
+        keep = lambda step, model: weights.__setitem__(step, _cpu_copy(model))  # noqa: E731
         result = train(rest, None, variant, tc, device=device, progress=progress, log=log, init=init, validation=held,
                        on_validate=keep if out is not None else None)
         history = list(result.history)
         if init is not None:
             initial = load_model(str(init), device)
             history.insert(0, (0, float(evaluate(initial, held_ex).nll_exact.mean())))
-            weights[0] = {k: v.detach().cpu().clone() for k, v in initial.state_dict().items()}
+            weights[0] = _cpu_copy(initial)
         snapshots.append((result.model, weights, trials.trial_ids[held_idx]))
         curves.append([v for _, v in history])
         instances.append(len(held_ex))
@@ -146,6 +147,11 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
     return result
 
 
+def _cpu_copy(model: CVAE) -> dict:
+    """A CPU copy of ``model``'s state dict."""
+    return {name: tensor.detach().cpu().clone() for name, tensor in model.state_dict().items()}
+
+
 def _save_fold_models(out: Path, result: CrossvalResult, snapshots: list) -> None:
     """``out/fold_K.pt``: fold K's model at the chosen step, with ``held_out_trials`` (trial ids)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -156,7 +162,7 @@ def _save_fold_models(out: Path, result: CrossvalResult, snapshots: list) -> Non
                         crossval={"folds": len(snapshots), "fold": k + 1, "nll_exact": float(result.curves[k, result.chosen])})
 
 
-def out_of_fold_models(folder: str | Path) -> list[tuple[object, list[int]]]:
+def out_of_fold_models(folder: str | Path) -> list[tuple[CVAE, list[int]]]:
     """The fold models saved by :func:`crossval` with ``out``: ``[(model, held-out trial ids)]``."""
     paths = sorted(Path(folder).glob("fold_*.pt"), key=lambda p: int(p.stem.split("_")[1]))
     if not paths:
