@@ -101,7 +101,8 @@ def test_candidate_lateral_motion_follows_the_steering_window_by_window():
         np.testing.assert_allclose(states[3 * w:3 * w + 3][:, [1, 3, 5]], window[:, :3], atol=1e-12)
         lateral = window[-1, :3]
     hold = rollout(PRESENT, np.full((1, 5), Action.of(0.0, "right").index))[0]
-    np.testing.assert_allclose(hold[:, 1], RIGHT) and np.testing.assert_allclose(hold[:, 2], PRESENT[2])
+    np.testing.assert_allclose(hold[:, 1], RIGHT)
+    np.testing.assert_allclose(hold[:, 2], PRESENT[2])
 
 
 def test_action_sequences_order():
@@ -259,7 +260,8 @@ def test_mpc_holds_then_replans_every_window_with_the_fixed_first_window():
         human = history[-1, 1] + [29.0 * DT, 0, 0, 0, 0, 0]
         history = np.concatenate([history, np.stack([robot, human])[None]])
     hold = history[: HOLD_STEPS + 1, 0]
-    np.testing.assert_allclose(hold[:, 1], RIGHT) and np.testing.assert_allclose(hold[:, 2], 29.0)
+    np.testing.assert_allclose(hold[:, 1], RIGHT)
+    np.testing.assert_allclose(hold[:, 2], 29.0)
     assert len(policy.plans) == 3  # at t = 8, 11, 14
     assert policy.plans[0].actions[0] == Action.of(0.0, "right").index
     for previous, current in zip(policy.plans, policy.plans[1:]):
