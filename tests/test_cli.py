@@ -182,6 +182,29 @@ def test_crossval_json_reports_folds_mean_and_reference(capsys, tmp_path):
     assert sorted(p.name for p in (tmp_path / "folds").iterdir()) == ["fold_1.pt", "fold_2.pt", "fold_3.pt"]
 
 
+def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoints(capsys, tmp_path):
+    from trafficweaving.model.calibrate import SCALES, TEMPERATURES
+    from trafficweaving.model.checkpoint import load_checkpoint
+
+    data, model, folds = tmp_path / "d.parquet", tmp_path / "m.pt", tmp_path / "folds"
+    run(capsys, "generate", "--trials", 9, "--seed", 3, "--out", data, "--json")
+    run(capsys, "train", "--data", data, "--out", model, "--steps", 2, "--variant", "cvae-hold", "--json")
+    run(capsys, "crossval", "--data", data, "--folds", 3, "--init", model, "--steps", 2, "--validate-every", 2,
+        "--out", folds, "--json")
+    code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--out", tmp_path / "c.pt",
+                       "--out-folds", tmp_path / "cfolds", "--samples", 10, "--json")
+    report = json.loads(out)
+    assert code == 0 and len(report["grid"]) == len(TEMPERATURES) * len(SCALES)
+    chosen = (report["latent_temperature"], report["output_scale"])
+    calibrated, payload = load_checkpoint(tmp_path / "c.pt")
+    assert (calibrated.latent_temperature.item(), calibrated.output_scale.item()) == pytest.approx(chosen)
+    assert payload["calibration"]["nll_exact"] == report["nll_exact"]
+    fold, fold_payload = load_checkpoint(tmp_path / "cfolds" / "fold_2.pt")
+    assert fold.output_scale.item() == pytest.approx(chosen[1]) and len(fold_payload["held_out_trials"]) == 3
+    code, _, err = run(capsys, "calibrate", "--data", data, "--folds", tmp_path, "--model", model, "--out", tmp_path / "x.pt")
+    assert code == 2 and "no fold_K.pt files" in err and err.count("\n") == 1
+
+
 def test_default_model_is_shipped_trained_and_evaluates(capsys, tmp_path):
     from trafficweaving.model.checkpoint import default_model_path, read_checkpoint
 
@@ -194,6 +217,9 @@ def test_default_model_is_shipped_trained_and_evaluates(capsys, tmp_path):
     assert "trafficweaving crossval" in payload["recipe"] and "trafficweaving generate" in payload["recipe"]
     cv = payload["crossval"]  # the cross-validation that chose the schedule: better than the authors' on every fold
     assert len(cv["folds"]) == 5 and all(a < b for a, b in zip(cv["folds"], cv["reference"]["folds"]))
+    calibration = payload["calibration"]  # chosen out-of-fold: 90 % position intervals at 1.5 s cover 85-95 %
+    assert all(0.85 <= c <= 0.95 for c in calibration["coverage_90"].values())
+    assert payload["state_dict"]["output_scale"].item() == calibration["output_scale"]
     data = tmp_path / "fresh.parquet"  # trials the shipped model never saw (another seed)
     run(capsys, "generate", "--trials", 20, "--seed", 12345, "--out", data, "--json")
     code, out, _ = run(capsys, "evaluate", "--model", "default", "--data", data, "--json", "--max-sampled-instances", 0)

@@ -329,3 +329,45 @@ def test_sampling_rejects_bad_inputs(small_trials):
         predictor.sample(history, bad, 2)
     with pytest.raises(ValueError, match="n must be a positive integer"):
         predictor.sample(history, futures, 0)
+
+
+# ---------------------------------------------------------------- calibration
+def test_calibration_scales_the_output_widths_and_tempers_the_latent_prior(small_trials):
+    from trafficweaving.model.calibrate import set_calibration
+
+    torch.manual_seed(0)
+    model = CVAE(CVAEConfig.variant("cvae-hold")).double().eval()
+    batch = build_exemplars(small_trials).standardised(Standardisation.fit(small_trials), dtype=torch.float64).batch(torch.arange(6))
+    x = model.encode(batch)
+    zx = model.zx(model.latent_onehots.unsqueeze(1), x)
+    _, plain = model.decode(zx, batch)
+    logits = model.p_z_logits(x)
+    set_calibration(model, 2.0, 1.5)
+    _, wide = model.decode(zx, batch)
+    torch.testing.assert_close(wide.gmm.log_sigma, plain.gmm.log_sigma + math.log(1.5))
+    torch.testing.assert_close(wide.log_s, plain.log_s + math.log(1.5))
+    torch.testing.assert_close(model.p_z_logits(x), logits / 2.0)
+    with pytest.raises(ValueError, match="calibration must be positive"):
+        set_calibration(model, 0.0, 1.0)
+
+
+def test_checkpoints_without_calibration_load_uncalibrated(tmp_path):
+    from trafficweaving.model.checkpoint import load_checkpoint, save_checkpoint
+
+    model = CVAE(CVAEConfig.variant("cvae-hold"))
+    save_checkpoint(tmp_path / "m.pt", model)
+    payload = torch.load(tmp_path / "m.pt", weights_only=True)
+    for name in ("latent_temperature", "output_scale"):
+        del payload["state_dict"][name]  # as written before calibration existed
+    torch.save(payload, tmp_path / "old.pt")
+    loaded, _ = load_checkpoint(tmp_path / "old.pt")
+    assert loaded.latent_temperature.item() == 1.0 and loaded.output_scale.item() == 1.0
+
+
+def test_calibration_choice_is_the_best_nll_within_the_coverage_band():
+    from trafficweaving.model.calibrate import _choose
+
+    row = lambda nll, x, y: {"nll_exact": nll, "coverage_90": {"x": x, "y": y}}  # noqa: E731
+    assert _choose([row(-21, 0.78, 0.74), row(-20, 0.86, 0.85), row(-19, 0.9, 0.9), row(-25, 0.97, 0.96)]) == 1
+    # none inside: the one whose worse direction is closest to 90 % (|0.99 - 0.9| < |0.78 - 0.9|)
+    assert _choose([row(-21, 0.70, 0.74), row(-20, 0.80, 0.78), row(-22, 0.99, 0.98)]) == 2

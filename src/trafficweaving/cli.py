@@ -210,6 +210,35 @@ def cmd_crossval(args) -> None:
     _emit(args, payload, "\n".join(lines))
 
 
+def cmd_calibrate(args) -> None:
+    from .data.trials import load_trials
+    from .model.calibrate import calibrate, set_calibration
+    from .model.checkpoint import default_model_path, model_from_checkpoint, read_checkpoint, save_checkpoint
+    from .model.crossval import out_of_fold_models
+
+    if args.samples < 2:
+        raise InputError(f"--samples must be at least 2, got {args.samples}")
+    path = default_model_path() if args.model == "default" else Path(args.model)
+    payload = read_checkpoint(path)  # a bad --model fails before the long grid
+    trials = load_trials(args.data)
+    result = calibrate(trials, args.folds, samples=args.samples, seed=args.seed, log=_log(args))
+    summary = result.summary()
+    temperature, scale = summary["latent_temperature"], summary["output_scale"]
+    model = set_calibration(model_from_checkpoint(payload, path), temperature, scale)
+    kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict")}
+    save_checkpoint(args.out, model, **{**kept, "calibration": summary})
+    if args.out_folds:
+        Path(args.out_folds).mkdir(parents=True, exist_ok=True)
+        for k, (fold_model, held) in enumerate(out_of_fold_models(args.folds)):
+            save_checkpoint(Path(args.out_folds) / f"fold_{k + 1}.pt", set_calibration(fold_model, temperature, scale),
+                            held_out_trials=held, calibration=summary)
+    cov = summary["coverage_90"]
+    _emit(args, {**summary, "model": str(args.model), "out": str(args.out)},
+          f"calibrated {args.model} -> {args.out}: latent temperature {temperature:g}, output scale {scale:g} "
+          f"(out-of-fold NLL {summary['nll_exact']:.2f}, 90 % coverage at 1.5 s x {100 * cov['x']:.0f} %, "
+          f"y {100 * cov['y']:.0f} %)")
+
+
 def _fmt(value) -> str:
     return "n/a" if value is None else f"{value:.3f}"
 
@@ -486,6 +515,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="choose the steps only among those where every fold beats the --reference model")
     _add_schedule_options(p, steps=1000)
     p.set_defaults(func=cmd_crossval)
+
+    p = sub.add_parser("calibrate", help="choose a model's latent temperature and output scale on out-of-fold predictions")
+    p.add_argument("--data", required=True, help="the Parquet dataset the cross-validation ran on")
+    p.add_argument("--folds", required=True, help="folder of fold models written by `crossval --out`")
+    p.add_argument("--model", required=True, help="the checkpoint to calibrate (or default), trained on every fold")
+    p.add_argument("--out", required=True, help="the calibrated checkpoint")
+    p.add_argument("--out-folds", help="also write the calibrated fold models here (for out-of-fold reports)")
+    p.add_argument("--samples", type=int, default=100, help="sampled futures per instance for the coverage")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("evaluate", help="NLL, coverage and displacement errors of a human model on every human agent of a dataset")
     p.add_argument("--model", default="default", help="checkpoint path, default, or authors:PATH")

@@ -49,6 +49,8 @@ def save_checkpoint(path: str | Path, model: CVAE, **fields) -> None:
 
 
 TRAINING_ONLY = ("optimizer", "rng")
+CALIBRATION = ("latent_temperature", "output_scale")
+"""Buffers set by calibration (model/calibrate.py); checkpoints written before it lack them (1, 1)."""
 
 
 def export_checkpoint(source: str | Path, destination: str | Path, **provenance) -> None:
@@ -85,6 +87,7 @@ def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
     model = CVAE(CVAEConfig(**config))
     expected = model.state_dict()
     state = payload.get("state_dict", {})
+    state = {**{k: expected[k] for k in CALIBRATION if k not in state}, **state}  # older files: uncalibrated
     missing, extra = set(expected) - set(state), set(state) - set(expected)
     if missing or extra:
         name = sorted(missing or extra)[0]

@@ -130,6 +130,9 @@ class CVAE(nn.Module):
         for name, size in (("feature_mean", STATE_DIM), ("feature_std", STATE_DIM),
                            ("label_mean", ACTION_DIM), ("label_std", ACTION_DIM)):
             self.register_buffer(name, torch.zeros(size) if "mean" in name else torch.ones(size))
+        # calibration, set after training (model/calibrate.py); 1 and 1 leave the trained model as it is
+        self.register_buffer("latent_temperature", torch.tensor(1.0))  # divides the p(z|x) logits
+        self.register_buffer("output_scale", torch.tensor(1.0))  # multiplies every output width
 
     # -- encoders ---------------------------------------------------------------------------
     def encode(self, batch: Batch, dropout: float = 0.0) -> torch.Tensor:
@@ -150,7 +153,7 @@ class CVAE(nn.Module):
     def p_z_logits(self, x: torch.Tensor, hidden_dropout: float = 0.0) -> torch.Tensor:
         """Prior logits ``[B, N_z, K_z]``, mean-subtracted per variable."""
         hidden = F.dropout(F.relu(self.p_z_hidden(x)), hidden_dropout, training=hidden_dropout > 0)
-        return self._latent_logits(self.p_z_out(hidden))
+        return self._latent_logits(self.p_z_out(hidden) / self.latent_temperature)
 
     def q_z_logits(self, x: torch.Tensor, batch: Batch, dropout: float = 0.0) -> torch.Tensor:
         """Recognition logits ``[B, N_z, K_z]`` from ``x`` and the human's future actions."""
@@ -173,8 +176,9 @@ class CVAE(nn.Module):
     def output(self, h: torch.Tensor, previous: torch.Tensor) -> GMM | HoldMixture:
         """Per-step output distribution from decoder outputs ``h [..., units]`` and the action fed
         at that step, ``previous [..., 2]`` (broadcastable; only the hold variant uses it)."""
-        gmm = self.gmm(h)
-        return gmm if self.hold is None else self.hold(h, gmm, previous)
+        log_scale = torch.log(self.output_scale)
+        gmm = self.gmm(h, log_scale)
+        return gmm if self.hold is None else self.hold(h, gmm, previous, log_scale)
 
     def _decoder_parts(self, zx: torch.Tensor, robot_inputs: torch.Tensor, action_inputs: torch.Tensor | None):
         """Split the decoder's input projection: the ``zx`` part (constant over the horizon)

@@ -183,12 +183,13 @@ class GMMHead(nn.Module):
         self.log_sigma = nn.Linear(units, 2 * components)
         self.corr = nn.Linear(units, components)
 
-    def forward(self, h: torch.Tensor) -> GMM:
+    def forward(self, h: torch.Tensor, log_scale: torch.Tensor | float = 0.0) -> GMM:
+        """``h [..., units]``; ``log_scale`` is added to every (clipped) log-sigma (calibration)."""
         shape = (*h.shape[:-1], self.components, 2)
         return GMM(
             log_pi=F.log_softmax(self.log_pi(h), dim=-1),
             mu=self.mu(h).view(shape),
-            log_sigma=self.log_sigma(h).clamp(-LOG_SIGMA_CLIP, LOG_SIGMA_CLIP).view(shape),
+            log_sigma=self.log_sigma(h).clamp(-LOG_SIGMA_CLIP, LOG_SIGMA_CLIP).view(shape) + log_scale,
             corr=torch.tanh(self.corr(h)),
         )
 
@@ -206,6 +207,8 @@ class HoldHead(nn.Module):
         """``log s [2]``, clamped below at ``log HOLD_MIN_SIGMA``."""
         return self.log_sigma.clamp(min=math.log(HOLD_MIN_SIGMA), max=LOG_SIGMA_CLIP)
 
-    def forward(self, h: torch.Tensor, gmm: GMM, previous: torch.Tensor) -> HoldMixture:
-        """``h [..., units]``, the free-mode ``gmm`` and ``previous [..., 2]`` (broadcastable)."""
-        return HoldMixture(F.log_softmax(self.logits(h), dim=-1), self.widths(), previous, gmm)
+    def forward(self, h: torch.Tensor, gmm: GMM, previous: torch.Tensor,
+                log_scale: torch.Tensor | float = 0.0) -> HoldMixture:
+        """``h [..., units]``, the free-mode ``gmm`` and ``previous [..., 2]`` (broadcastable);
+        ``log_scale`` is added to the log widths (calibration)."""
+        return HoldMixture(F.log_softmax(self.logits(h), dim=-1), self.widths() + log_scale, previous, gmm)

@@ -74,8 +74,9 @@ class BatchedSampler:
             if c.hold:
                 head = torch.cat([m.hold.logits.weight.T, head], dim=1)
                 self.head_bias = torch.cat([m.hold.logits.bias, self.head_bias])
-                self.hold_sigma = m.hold.widths().exp()
+                self.hold_sigma = m.hold.widths().exp() * m.output_scale
             self.param_offsets = (self.modes + m_count + torch.arange(5)).unsqueeze(0)
+            self.output_scale = float(m.output_scale)
             self.w_head = head.contiguous().to(self.matmul_dtype)
             self.head_bias = self.head_bias.to(self.matmul_dtype)
             self.w_step = self.w_step.to(self.matmul_dtype)
@@ -188,7 +189,7 @@ class BatchedSampler:
         cdf = torch.softmax(head[:, modes:modes + m_count], dim=-1).cumsum_(-1)
         k = (cdf < uniform.unsqueeze(-1)).sum(-1, keepdim=True).clamp_(max=m_count - 1)  # [R, 1]
         params = head.gather(1, 5 * k + offsets)  # [R, 5]: mu_x, mu_y, log_sigma_x, log_sigma_y, corr
-        sigma = params[:, 2:4].clamp(-LOG_SIGMA_CLIP, LOG_SIGMA_CLIP).exp_()
+        sigma = params[:, 2:4].clamp(-LOG_SIGMA_CLIP, LOG_SIGMA_CLIP).exp_().mul_(self.output_scale)
         corr = torch.tanh(params[:, 4:5])
         if modes:
             out.copy_(compose_hold_sample(mode, params[:, :2], sigma, corr[:, 0], previous, self.hold_sigma, normal))

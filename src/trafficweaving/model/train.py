@@ -213,6 +213,9 @@ def init_model(init: str | Path, variant: str | None, train_ex: ExemplarSet) -> 
     if not model.config.has_q:
         raise InputError(f"--init {init}: the model has no recognition network q(z|x,y) (expected a model trained by trafficweaving)")
     check_standardisation_fits(model, train_ex, f"--init {init}")
+    with torch.no_grad():  # fine-tune the trained model itself; calibration is redone afterwards
+        model.latent_temperature.fill_(1.0)
+        model.output_scale.fill_(1.0)
     provenance = {"path": str(init), "variant": model.config.name, "step": int(payload.get("step", 0)),
                   **{k: payload[k] for k in ("data_fingerprint", "recipe", "data_command") if k in payload}}
     return model, provenance
