@@ -442,6 +442,12 @@ def _demo_human_model(trials, reference, figures: Path) -> None:
             print(f"  in-sample: the model was fine-tuned on these trials; {len(cv['folds'])}-fold cross-validated by trial "
                   f"it scores {cv['nll_exact']:.3f} (nested {cv['nested']['nll_exact']:.3f}; the authors' model "
                   f"{cv['reference']['nll_exact']:.3f} on the same folds)")
+        calibration = payload.get("calibration")
+        if calibration:
+            cov = calibration["coverage_90"]
+            print(f"  calibrated out-of-fold (latent temperature {calibration['latent_temperature']:g}, output scale "
+                  f"{calibration['output_scale']:g}): NLL {calibration['nll_exact']:.3f}, 90 % position intervals 1.5 s "
+                  f"ahead cover {100 * cov['x']:.0f} % (x) and {100 * cov['y']:.0f} % (y) of real positions")
         picks, data, name = DEMO_REAL_PICKS, reference, "predictions_real.png"
     else:
         picks, data, name = [(0, 0, 12), (1, 1, 20)], trials, "predictions_synthetic.png"
