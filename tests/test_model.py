@@ -333,8 +333,6 @@ def test_sampling_rejects_bad_inputs(small_trials):
 
 # ---------------------------------------------------------------- calibration
 def test_calibration_scales_the_output_widths_and_tempers_the_latent_prior(small_trials):
-    from trafficweaving.model.calibrate import set_calibration
-
     torch.manual_seed(0)
     model = CVAE(CVAEConfig.variant("cvae-hold")).double().eval()
     batch = build_exemplars(small_trials).standardised(Standardisation.fit(small_trials), dtype=torch.float64).batch(torch.arange(6))
@@ -342,13 +340,13 @@ def test_calibration_scales_the_output_widths_and_tempers_the_latent_prior(small
     zx = model.zx(model.latent_onehots.unsqueeze(1), x)
     _, plain = model.decode(zx, batch)
     logits = model.p_z_logits(x)
-    set_calibration(model, 2.0, 1.5)
+    model.set_calibration(2.0, 1.5)
     _, wide = model.decode(zx, batch)
     torch.testing.assert_close(wide.gmm.log_sigma, plain.gmm.log_sigma + math.log(1.5))
     torch.testing.assert_close(wide.log_s, plain.log_s + math.log(1.5))
     torch.testing.assert_close(model.p_z_logits(x), logits / 2.0)
     with pytest.raises(ValueError, match="calibration must be positive"):
-        set_calibration(model, 0.0, 1.0)
+        model.set_calibration(0.0, 1.0)
 
 
 def test_checkpoints_without_calibration_load_uncalibrated(tmp_path):

@@ -162,12 +162,10 @@ def test_human_integration_is_the_trapezoid_rule():
 @pytest.mark.parametrize("variant, calibration", [("cvae", None), ("mixture-lstm", None), ("lstm", None),
                                                   ("cvae-hold", None), ("cvae-hold", (3.0, 1.7))])
 def test_fast_sampler_equals_the_models_sampling_given_the_same_random_numbers(variant, calibration):
-    from trafficweaving.model.calibrate import set_calibration
-
     torch.manual_seed(0)
     model = CVAE(CVAEConfig.variant(variant)).double().eval()
     if calibration:
-        set_calibration(model, *calibration)
+        model.set_calibration(*calibration)
     history = torch.randn(9, 12, dtype=torch.float64)
     futures = torch.randn(6, 15, 6, dtype=torch.float64)
     fast = BatchedSampler(model, chunk_rows=5)  # chunks that split candidates

@@ -174,7 +174,7 @@ def cmd_train(args) -> None:
         raise InputError("--init and --resume exclude each other (expected one: fine-tune a model, or continue a run)")
     tc = _train_config(args)
     trials = load_trials(args.data)
-    result = train(trials, args.out, args.variant if args.variant or args.init else "cvae", tc, resume=args.resume,
+    result = train(trials, args.out, args.variant, tc, resume=args.resume,
                    device=choose_device(args.device), progress=not args.json, log=_log(args), init=args.init)
     validation = result.validation or {"instances": 0, "nll_exact": None, "nll_is": None, "nll_naive": None}
     payload = {"variant": result.model.config.name, "steps": result.step, **validation,
@@ -212,7 +212,7 @@ def cmd_crossval(args) -> None:
 
 def cmd_calibrate(args) -> None:
     from .data.trials import load_trials
-    from .model.calibrate import calibrate, set_calibration
+    from .model.calibrate import calibrate
     from .model.checkpoint import default_model_path, model_from_checkpoint, read_checkpoint, save_checkpoint
     from .model.crossval import out_of_fold_models
 
@@ -224,13 +224,13 @@ def cmd_calibrate(args) -> None:
     result = calibrate(trials, args.folds, samples=args.samples, seed=args.seed, log=_log(args))
     summary = result.summary()
     temperature, scale = summary["latent_temperature"], summary["output_scale"]
-    model = set_calibration(model_from_checkpoint(payload, path), temperature, scale)
+    model = model_from_checkpoint(payload, path).set_calibration(temperature, scale)
     kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict")}
     save_checkpoint(args.out, model, **{**kept, "calibration": summary})
     if args.out_folds:
         Path(args.out_folds).mkdir(parents=True, exist_ok=True)
         for k, (fold_model, held) in enumerate(out_of_fold_models(args.folds)):
-            save_checkpoint(Path(args.out_folds) / f"fold_{k + 1}.pt", set_calibration(fold_model, temperature, scale),
+            save_checkpoint(Path(args.out_folds) / f"fold_{k + 1}.pt", fold_model.set_calibration(temperature, scale),
                             held_out_trials=held, calibration=summary)
     cov = summary["coverage_90"]
     _emit(args, {**summary, "model": str(args.model), "out": str(args.out)},

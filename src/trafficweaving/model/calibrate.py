@@ -21,11 +21,9 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-import torch
 
 from ..data.trials import TrialSet
 from .crossval import out_of_fold_models
-from .cvae import CVAE
 from .exemplars import build_exemplars
 from .metrics import InstanceMetrics, evaluate_instances
 
@@ -33,16 +31,6 @@ TEMPERATURES = (1.0, 2.0, 5.0)
 SCALES = (1.0, 1.4, 1.7, 2.0, 2.5)
 COVERAGE_BAND = (0.85, 0.95)
 """Accepted coverage of the nominal 90 % position interval 1.5 s ahead, per direction."""
-
-
-def set_calibration(model: CVAE, latent_temperature: float, output_scale: float) -> CVAE:
-    """Set ``model``'s calibration buffers in place (both positive); returns the model."""
-    if not (latent_temperature > 0 and output_scale > 0):
-        raise ValueError(f"calibration must be positive, got temperature {latent_temperature}, scale {output_scale}")
-    with torch.no_grad():
-        model.latent_temperature.fill_(latent_temperature)
-        model.output_scale.fill_(output_scale)
-    return model
 
 
 @dataclass
@@ -74,7 +62,7 @@ def calibrate(trials: TrialSet, folds: str, temperatures=TEMPERATURES, scales=SC
     grid = []
     for temperature in temperatures:
         for scale in scales:
-            parts = [evaluate_instances(set_calibration(model, temperature, scale), fold, build_exemplars(fold),
+            parts = [evaluate_instances(model.set_calibration(temperature, scale), fold, build_exemplars(fold),
                                         samples=samples, ade_samples=20, seed=seed)
                      for (model, _), fold in zip(models, subsets)]
             s = InstanceMetrics.concatenate(parts).summary()

@@ -129,7 +129,7 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
                        on_validate=keep if out is not None else None)
         history = list(result.history)
         if init is not None:
-            initial = load_model(str(init), device)
+            initial = load_model(str(init), device).set_calibration(1.0, 1.0)  # as fine-tuning starts
             history.insert(0, (0, float(evaluate(initial, held_ex).nll_exact.mean())))
             weights[0] = _cpu_copy(initial)
         snapshots.append((result.model, weights, trials.trial_ids[held_idx]))

@@ -134,6 +134,16 @@ class CVAE(nn.Module):
         self.register_buffer("latent_temperature", torch.tensor(1.0))  # divides the p(z|x) logits
         self.register_buffer("output_scale", torch.tensor(1.0))  # multiplies every output width
 
+    def set_calibration(self, latent_temperature: float, output_scale: float) -> "CVAE":
+        """Set the calibration buffers in place (both positive; 1 and 1: the trained model as it
+        is; chosen by :mod:`trafficweaving.model.calibrate`); returns the model."""
+        if not (latent_temperature > 0 and output_scale > 0):
+            raise ValueError(f"calibration must be positive, got temperature {latent_temperature}, scale {output_scale}")
+        with torch.no_grad():
+            self.latent_temperature.fill_(latent_temperature)
+            self.output_scale.fill_(output_scale)
+        return self
+
     # -- encoders ---------------------------------------------------------------------------
     def encode(self, batch: Batch, dropout: float = 0.0) -> torch.Tensor:
         """``x = concat(history h at t, robot-future summary)``, ``[B, x_size]``."""

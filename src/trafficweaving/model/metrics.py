@@ -70,13 +70,18 @@ def level_key(level: float) -> str:
     return f"{100 * level:g}"
 
 
+def true_actions(exemplars: ExemplarSet, index: np.ndarray) -> np.ndarray:
+    """The human's recorded accelerations ``[len(index), 15, 2]`` (m/s²) at steps t+1..t+15 of
+    exemplars ``index``."""
+    s, t = exemplars.stream[index], exemplars.t[index]
+    return exemplars.streams[s[:, None], t[:, None] + np.arange(1, HORIZON + 1), 1, ACCEL]
+
+
 def true_positions(exemplars: ExemplarSet, index: np.ndarray) -> np.ndarray:
     """The human's positions ``[len(index), 15, 2]`` (m) at steps t+1..t+15 of exemplars ``index``,
     integrated by the trapezoid rule from its recorded present state and recorded accelerations."""
-    s, t = exemplars.stream[index], exemplars.t[index]
-    present = exemplars.streams[s, t, 1]  # [E, 6]
-    actions = exemplars.streams[s[:, None], t[:, None] + np.arange(1, HORIZON + 1), 1, ACCEL]  # [E, 15, 2]
-    return human_states(torch.as_tensor(present), torch.as_tensor(actions))[..., :2].numpy()
+    present = exemplars.streams[exemplars.stream[index], exemplars.t[index], 1]  # [E, 6]
+    return human_states(torch.as_tensor(present), torch.as_tensor(true_actions(exemplars, index)))[..., :2].numpy()
 
 
 @dataclass
@@ -114,6 +119,7 @@ def sampled_metrics(model: CVAE, exemplars: ExemplarSet, index: np.ndarray, samp
     draws = max(samples, ade_samples)
     generator = torch.Generator(device=device).manual_seed(seed)
     truth = torch.as_tensor(true_positions(exemplars, index), device=device)  # [E', 15, 2]
+    truth_actions = torch.as_tensor(true_actions(exemplars, index), device=device)  # [E', 15, 2]
     s, t = exemplars.stream[index], exemplars.t[index]
     present = torch.as_tensor(exemplars.streams[s, t, 1], device=device)  # [E', 6]
     bounds = torch.tensor([q for level in levels for q in (0.5 - level / 2, 0.5 + level / 2)],
@@ -139,10 +145,9 @@ def sampled_metrics(model: CVAE, exemplars: ExemplarSet, index: np.ndarray, samp
         error = torch.linalg.vector_norm(positions[:ade_samples] - true, dim=-1)  # [k, B, 15]
         ade.append(error.mean(-1).min(0).values)
         fde.append(error[..., -1].min(0).values)
-        s_rows, t_rows = s[rows], t[rows]
-        true_actions = torch.as_tensor(exemplars.streams[s_rows[:, None], t_rows[:, None] + np.arange(1, HORIZON + 1), 1, ACCEL], device=device)
         present_action = present[rows, 4:6]
-        held.append(torch.stack([held_fraction(present_action, actions).mean(0), held_fraction(present_action, true_actions)], 1))
+        held.append(torch.stack([held_fraction(present_action, actions).mean(0),
+                                 held_fraction(present_action, truth_actions[rows])], 1))
     cat = lambda parts: torch.cat(parts).cpu().numpy()  # noqa: E731
     return SampledMetrics(cat(covered), cat(ade), cat(fde), cat(held))
 

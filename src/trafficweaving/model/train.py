@@ -213,9 +213,7 @@ def init_model(init: str | Path, variant: str | None, train_ex: ExemplarSet) -> 
     if not model.config.has_q:
         raise InputError(f"--init {init}: the model has no recognition network q(z|x,y) (expected a model trained by trafficweaving)")
     check_standardisation_fits(model, train_ex, f"--init {init}")
-    with torch.no_grad():  # fine-tune the trained model itself; calibration is redone afterwards
-        model.latent_temperature.fill_(1.0)
-        model.output_scale.fill_(1.0)
+    model.set_calibration(1.0, 1.0)  # fine-tune the trained model itself; calibration is redone afterwards
     provenance = {"path": str(init), "variant": model.config.name, "step": int(payload.get("step", 0)),
                   **{k: payload[k] for k in ("data_fingerprint", "recipe", "data_command") if k in payload}}
     return model, provenance
@@ -224,14 +222,13 @@ def init_model(init: str | Path, variant: str | None, train_ex: ExemplarSet) -> 
 def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae", tc: TrainConfig = TrainConfig(),
           resume: str | Path | None = None, device: torch.device | str = "cpu",
           progress: bool = True, log: Callable[[str], None] = print, init: str | Path | None = None,
-          validation: TrialSet | None = None, recipe: str | None = None,
+          validation: TrialSet | None = None,
           on_validate: Callable[[int, CVAE], None] | None = None) -> TrainResult:
     """Train a ``variant`` model on ``trials`` and write checkpoints to ``out`` (every
     ``checkpoint_every`` steps and at the end; None: no files). With ``resume``, continue the run
     saved in that checkpoint (its configurations are used; the data must be the same). With
     ``init``, fine-tune that checkpoint's model (``variant`` None: whatever it is). ``validation``
-    replaces the split of ``trials``; ``recipe`` is recorded in the checkpoint; ``on_validate(step,
-    model)`` is called after each validation."""
+    replaces the split of ``trials``; ``on_validate(step, model)`` is called after each validation."""
     device = torch.device(device)
     payload = read_checkpoint(resume) if resume else None
     if payload is not None:
@@ -242,7 +239,7 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
 
     train_ex, val_ex, standardisation = prepare_data(trials, tc, validation)
     fingerprint = train_ex.fingerprint()
-    extra = {} if recipe is None else {"recipe": recipe}
+    extra = {}
     if payload is not None:
         if payload.get("data_fingerprint") != fingerprint:
             raise InputError(f"{resume}: checkpoint was trained on different data (fingerprint mismatch)")
