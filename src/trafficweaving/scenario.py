@@ -21,6 +21,8 @@ STATE_NAMES = ("x", "y", "xd", "yd", "xdd", "ydd")
 
 LANE_CENTRE_Y = {"left": -1.83, "right": -6.09}
 """Lateral coordinate of each lane centre, m."""
+LANES = tuple(LANE_CENTRE_Y)
+"""Lane names, left first: ``("left", "right")``."""
 LANE_DIVIDER_Y = -3.96
 """Lane divider, m (used for drawing and for deciding which lane a car is in)."""
 SWAP_THRESHOLD_Y = -4.0
@@ -53,8 +55,12 @@ DELTA_V_VALUES = (-2.0, 0.0, 2.0)
 TCO_VALUES = (1.0, 2.0, 3.0)
 """Crossover times: seconds until the cars would be side by side with no control, s."""
 
-MIN_TRIAL_STEPS = 20
-"""Shortest usable trial: a 5-step history plus a 15-step future (step 2 needs ``4 <= t <= T-16``)."""
+HORIZON = 15
+"""Steps of the future the human model predicts and the planner plans (1.5 s; paper §IV-A)."""
+MIN_HISTORY = 5
+"""Fewest history steps a prediction is made from (steps 0..t with ``t >= 4``), as in the paper."""
+MIN_TRIAL_STEPS = MIN_HISTORY + HORIZON
+"""Shortest usable trial: a 5-step history plus a 15-step future (``4 <= t <= T-16``)."""
 
 
 @dataclass(frozen=True)

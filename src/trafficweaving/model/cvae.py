@@ -15,13 +15,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..scenario import HORIZON, MIN_HISTORY
 from .gmm import GMM, GMMHead, HoldHead, HoldMixture
 from .lstm import LSTMCell, SequenceSummary, StateProjection, dropout_masks
 
 STATE_DIM = 6
 ACTION_DIM = 2
-HORIZON = 15
-MIN_HISTORY = 5  # prediction needs steps 0..t with t >= 4
 
 VARIANTS = {  # name: (latent_vars N_z, latent_classes K_z, components M, hold)
     "cvae": (2, 5, 16, False),  # the paper's Fig. 3 ...

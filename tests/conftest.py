@@ -1,0 +1,48 @@
+"""Shared test fixtures: the authors' reference data (their 30 human-in-the-loop recordings and
+their trained model), found beside the repository in ``../shared/reference`` or in
+``$TRAFFICWEAVING_SHARED/reference``.
+
+A test that needs it takes one of these fixtures and is *skipped with the reason shown* when the
+data is absent (``pytest -rs`` lists them); no test runs half of its checks without it.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REFERENCE = Path(os.environ.get("TRAFFICWEAVING_SHARED", Path(__file__).resolve().parents[2] / "shared")) / "reference"
+
+
+@pytest.fixture(scope="session")
+def hitl_dir() -> Path:
+    """The folder of the authors' 30 human-in-the-loop ``.jld`` recordings (skips when absent)."""
+    folder = REFERENCE / "hitl"
+    if not sorted(folder.glob("*.jld")):
+        pytest.skip(f"the authors' human-in-the-loop recordings are not present ({folder})")
+    return folder
+
+
+@pytest.fixture(scope="session")
+def hitl_files(hitl_dir) -> list[Path]:
+    """The 30 ``.jld`` files, sorted."""
+    return sorted(hitl_dir.glob("*.jld"))
+
+
+@pytest.fixture(scope="session")
+def hitl_trials(hitl_files):
+    """The 30 real trials imported once per test session (a :class:`TrialSet`; do not modify)."""
+    from trafficweaving.data.hitl import read_hitl
+
+    return read_hitl(hitl_files)
+
+
+@pytest.fixture(scope="session")
+def authors_model_dir() -> Path:
+    """The folder of the authors' ``weights.npz`` and ``reference_outputs.npz`` (skips when absent)."""
+    folder = REFERENCE / "authors_model"
+    if not ((folder / "weights.npz").is_file() and (folder / "reference_outputs.npz").is_file()):
+        pytest.skip(f"the authors' trained model and reference outputs are not present ({folder})")
+    return folder
