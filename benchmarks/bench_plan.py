@@ -35,7 +35,7 @@ from trafficweaving.model.checkpoint import load_model
 from trafficweaving.model.cvae import HORIZON
 from trafficweaving.planning.candidates import Action, robot_candidates
 from trafficweaving.planning.costs import PaperCost
-from trafficweaving.model.predictor import human_states
+from trafficweaving.dynamics import future_states
 from trafficweaving.planning.planner import Budget, Planner, example_history
 from trafficweaving.scenario import LANE_CENTRE_Y
 
@@ -77,7 +77,7 @@ def naive_plan(model, history: np.ndarray, first: int, cost, budget: Budget, see
         classes = torch.distributions.Categorical(logits=log_p).sample((n,))  # [n, C', N_z]
         z = torch.nn.functional.one_hot(classes, model.config.latent_classes).flatten(2).float()
         actions = model.sample_actions(model.zx(z, x[index]), robot_inputs[index], present.expand(len(index), -1), g)
-        human = human_states(human_present, actions * model.label_std + model.label_mean)
+        human = future_states(human_present, actions * model.label_std + model.label_mean)
         return cost(robot[index].unsqueeze(0), human).mean(0)
 
     first_cost = scores(torch.arange(count), budget.first_stage_samples)

@@ -15,7 +15,8 @@ from trafficweaving.model.cvae import CVAE, HORIZON, CVAEConfig
 from trafficweaving.model.evaluate import evaluate
 from trafficweaving.model.exemplars import ExemplarSet, build_exemplars
 from trafficweaving.model.metrics import PHASES, evaluate_instances, sampled_metrics, true_positions
-from trafficweaving.model.predictor import HumanPredictor, human_states
+from trafficweaving.dynamics import future_states
+from trafficweaving.model.predictor import HumanPredictor
 
 
 @pytest.fixture(scope="module")
@@ -35,13 +36,13 @@ def run(capsys, *argv):
     return code, out, err
 
 
-def test_batched_human_states_match_one_present_state_at_a_time():
+def test_batched_future_states_match_one_present_state_at_a_time():
     gen = torch.Generator().manual_seed(0)
     present = torch.randn(4, 6, generator=gen, dtype=torch.float64)
     actions = torch.randn(3, 4, HORIZON, 2, generator=gen, dtype=torch.float64)
-    batched = human_states(present, actions)  # [3, 4, 15, 6]
+    batched = future_states(present, actions)  # [3, 4, 15, 6]
     for b in range(4):
-        torch.testing.assert_close(batched[:, b], human_states(present[b], actions[:, b]))
+        torch.testing.assert_close(batched[:, b], future_states(present[b], actions[:, b]))
     assert torch.equal(batched[..., 4:], actions)
 
 
@@ -61,7 +62,7 @@ def _self_sampled(model, exemplars: ExemplarSet, picks: np.ndarray) -> ExemplarS
     for k, t in enumerate(exemplars.t[picks]):
         history, robot_future = streams[k, : t + 1], streams[k, t + 1: t + 1 + HORIZON, 0]
         actions = predictor.sample(history, robot_future[None], n=1, seed=1000 + k).actions[0, 0].double()
-        streams[k, t + 1: t + 1 + HORIZON, 1] = human_states(torch.as_tensor(history[-1, 1]), actions).numpy()
+        streams[k, t + 1: t + 1 + HORIZON, 1] = future_states(torch.as_tensor(history[-1, 1]), actions).numpy()
     n = len(picks)
     return ExemplarSet(streams, exemplars.lengths[exemplars.stream[picks]], np.arange(n), np.ones(n, np.int64),
                        exemplars.sources[exemplars.stream[picks]], np.arange(n), exemplars.t[picks].copy())

@@ -10,7 +10,7 @@ from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.planning.candidates import ACCELERATIONS, Action, action_sequences, robot_candidates, rollout
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
-from trafficweaving.model.predictor import human_states
+from trafficweaving.dynamics import future_states
 from trafficweaving.planning.planner import Budget, Planner
 from trafficweaving.model.sampler import BatchedSampler
 from trafficweaving.planning.steering import optimal_time, steer, steering_cost
@@ -150,7 +150,7 @@ def test_cost_broadcasts_over_samples_and_candidates():
 def test_human_integration_is_the_trapezoid_rule():
     present = torch.tensor([-80.0, RIGHT, 28.0, 0.3, 1.0, -0.2], dtype=torch.float64)
     actions = torch.randn(4, 15, 2, dtype=torch.float64)
-    states = human_states(present, actions)
+    states = future_states(present, actions)
     for axis in (0, 1):
         p, v = integrate_trapezoid(np.full(4, present[axis].item()), np.full(4, present[2 + axis].item()),
                                    np.concatenate([np.full((4, 1), present[4 + axis].item()), actions[..., axis].numpy()], 1))

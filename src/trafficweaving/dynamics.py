@@ -1,33 +1,77 @@
-"""Integrators shared by data generation, prediction and planning.
+"""How cars move: the one home of integration, for NumPy arrays and torch tensors alike.
 
-Recorded human cars follow trapezoid integration of acceleration into velocity and of velocity
-into position (checked on the authors' recordings: residual < 5e-3 m/s per step).
+Human cars (recorded and simulated) follow the trapezoid rule, acceleration into velocity and
+velocity into position (checked on the authors' recordings: residual < 5e-3 m/s per step). The
+robot's candidate futures follow the authors' robot convention instead: the acceleration stored at
+step ``k`` is applied from ``k`` to ``k+1``, velocity by Euler, position by the trapezoid rule
+(:func:`robot_longitudinal`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from .scenario import DT
 
 
-def integrate_trapezoid(p0: np.ndarray, v0: np.ndarray, acc: np.ndarray, dt: float = DT):
+def _cumsum(a, axis: int):
+    return torch.cumsum(a, dim=axis) if isinstance(a, torch.Tensor) else np.cumsum(a, axis=axis)
+
+
+def _cat(parts, axis: int):
+    return torch.cat(parts, dim=axis) if isinstance(parts[0], torch.Tensor) else np.concatenate(parts, axis=axis)
+
+
+def integrate_trapezoid(p0, v0, acc, dt: float = DT):
     """Positions and velocities from accelerations by the trapezoid rule along the last axis.
 
     ``p0``, ``v0``: ``[...]`` initial position (m) and velocity (m/s); ``acc``: ``[..., N+1]``
     accelerations (m/s²) at steps 0..N, where ``acc[..., 0]`` is the present acceleration.
-    Returns ``(p, v)``, each ``[..., N+1]`` including the initial values at index 0.
+    Returns ``(p, v)``, each ``[..., N+1]`` including the initial values at index 0 (NumPy float64
+    for array input, tensors of ``acc``'s dtype for tensor input).
     """
-    acc = np.asarray(acc, dtype=float)
-    dv = 0.5 * dt * (acc[..., 1:] + acc[..., :-1])
-    v = np.concatenate([np.asarray(v0, float)[..., None], v0[..., None] + np.cumsum(dv, axis=-1)], axis=-1)
-    dp = 0.5 * dt * (v[..., 1:] + v[..., :-1])
-    p = np.concatenate([np.asarray(p0, float)[..., None], p0[..., None] + np.cumsum(dp, axis=-1)], axis=-1)
+    if not isinstance(acc, torch.Tensor):
+        acc, p0, v0 = (np.asarray(a, dtype=float) for a in (acc, p0, v0))
+    v = _cat([v0[..., None], v0[..., None] + _cumsum(0.5 * dt * (acc[..., 1:] + acc[..., :-1]), -1)], -1)
+    p = _cat([p0[..., None], p0[..., None] + _cumsum(0.5 * dt * (v[..., 1:] + v[..., :-1]), -1)], -1)
     return p, v
 
 
-def trapezoid_step(p: np.ndarray, v: np.ndarray, a: np.ndarray, a_next: np.ndarray, dt: float = DT):
+def trapezoid_step(p, v, a, a_next, dt: float = DT):
     """One step of :func:`integrate_trapezoid`: ``(p, v)`` at the next step, same shapes as inputs
     (m, m/s; accelerations in m/s² at this and the next step)."""
     v_next = v + 0.5 * dt * (a + a_next)
     return p + 0.5 * dt * (v + v_next), v_next
+
+
+def future_states(present, accelerations, dt: float = DT):
+    """A human car's states ``[..., N, 6]`` at steps t+1..t+N from its present state ``present
+    [..., 6]`` (broadcastable against the leading dims of ``accelerations``) and its accelerations
+    ``accelerations [..., N, 2]`` (m/s², ``[xdd, ydd]``) at those steps, by the trapezoid rule.
+    NumPy arrays or torch tensors (the type of ``accelerations``)."""
+    tensor = isinstance(accelerations, torch.Tensor)
+    if tensor:
+        present = torch.as_tensor(present, dtype=accelerations.dtype, device=accelerations.device)
+        lead = torch.broadcast_shapes(present.shape[:-1], accelerations.shape[:-2])
+        present, accelerations = present.expand(*lead, 6), accelerations.expand(*lead, *accelerations.shape[-2:])
+    else:
+        present, accelerations = np.asarray(present, dtype=float), np.asarray(accelerations, dtype=float)
+        lead = np.broadcast_shapes(present.shape[:-1], accelerations.shape[:-2])
+        present = np.broadcast_to(present, (*lead, 6))
+        accelerations = np.broadcast_to(accelerations, (*lead, *accelerations.shape[-2:]))
+    acc = _cat([present[..., None, 4:6], accelerations], -2).swapaxes(-1, -2)  # [..., 2, N+1]
+    p, v = integrate_trapezoid(present[..., 0:2], present[..., 2:4], acc, dt)
+    stack = torch.stack if tensor else np.stack
+    return stack([p[..., 0, 1:], p[..., 1, 1:], v[..., 0, 1:], v[..., 1, 1:], acc[..., 0, 1:], acc[..., 1, 1:]], -1)
+
+
+def robot_longitudinal(x0, xd0, applied, dt: float = DT):
+    """The robot's positions and velocities ``(x, xd)``, each ``[..., N]`` at steps t+1..t+N, from
+    its present ``x0``, ``xd0`` ``[...]`` (m, m/s) and the accelerations ``applied [..., N]`` (m/s²)
+    applied from steps t..t+N-1: Euler velocity, trapezoid position (the robot convention)."""
+    applied = np.asarray(applied, dtype=float)
+    x0, xd0 = np.asarray(x0, dtype=float)[..., None], np.asarray(xd0, dtype=float)[..., None]
+    xd = xd0 + dt * np.cumsum(applied, axis=-1)
+    xd_before = np.concatenate([np.broadcast_to(xd0, xd[..., :1].shape), xd[..., :-1]], axis=-1)
+    return x0 + np.cumsum(0.5 * dt * (xd_before + xd), axis=-1), xd

@@ -133,6 +133,18 @@ class CVAE(nn.Module):
         self.register_buffer("latent_temperature", torch.tensor(1.0))  # divides the p(z|x) logits
         self.register_buffer("output_scale", torch.tensor(1.0))  # multiplies every output width
 
+    def states_to_standard(self, states: torch.Tensor) -> torch.Tensor:
+        """Car states ``[..., 6]`` (m, m/s, m/s²) in the model's standardised units."""
+        return (states - self.feature_mean) / self.feature_std
+
+    def actions_to_standard(self, actions: torch.Tensor) -> torch.Tensor:
+        """Human actions ``[..., 2]`` (accelerations, m/s²) in the model's standardised units."""
+        return (actions - self.label_mean) / self.label_std
+
+    def actions_to_physical(self, actions: torch.Tensor) -> torch.Tensor:
+        """Standardised human actions ``[..., 2]`` back in m/s² (inverse of :meth:`actions_to_standard`)."""
+        return actions * self.label_std + self.label_mean
+
     def set_calibration(self, latent_temperature: float, output_scale: float) -> "CVAE":
         """Set the calibration buffers in place (both positive; 1 and 1: the trained model as it
         is; chosen by :mod:`trafficweaving.model.calibrate`); returns the model."""

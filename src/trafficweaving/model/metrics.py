@@ -2,7 +2,7 @@
 instance's lane-change phase, and metrics of sampled human futures (positions).
 
 * **Positions.** Sampled accelerations become positions by the trapezoid rule from the recorded
-  present state (:func:`~trafficweaving.model.predictor.human_states`). The true positions are
+  present state (:func:`~trafficweaving.model.predictor.future_states`). The true positions are
   integrated the same way from the *recorded* accelerations (:func:`true_positions`), so the
   sampled metrics judge the action model alone: on the synthetic data this is the recording
   exactly; on the 30 real trials the recorded positions differ from it by 1.4 cm (x) and 3.5 cm
@@ -46,7 +46,7 @@ from ..scenario import DT
 from .cvae import CVAE, HORIZON
 from .evaluate import Evaluation, evaluate_tensors, model_standardisation
 from .exemplars import ACCEL, ExemplarSet, ExemplarTensors
-from .predictor import human_states
+from ..dynamics import future_states
 
 DIRECTIONS = ("x", "y")
 HORIZON_STEPS = (5, 10, 15)
@@ -81,7 +81,7 @@ def true_positions(exemplars: ExemplarSet, index: np.ndarray) -> np.ndarray:
     """The human's positions ``[len(index), 15, 2]`` (m) at steps t+1..t+15 of exemplars ``index``,
     integrated by the trapezoid rule from its recorded present state and recorded accelerations."""
     present = exemplars.streams[exemplars.stream[index], exemplars.t[index], 1]  # [E, 6]
-    return human_states(torch.as_tensor(present), torch.as_tensor(true_actions(exemplars, index)))[..., :2].numpy()
+    return future_states(torch.as_tensor(present), torch.as_tensor(true_actions(exemplars, index)))[..., :2].numpy()
 
 
 @dataclass
@@ -136,7 +136,7 @@ def sampled_metrics(model: CVAE, exemplars: ExemplarSet, index: np.ndarray, samp
         actions = model.sample_actions(model.zx(model.latent_onehots[z], x), model.decoder_robot_inputs(batch),
                                        batch.human_present_action, generator)
         actions = actions.double() * model.label_std.double() + model.label_mean.double()
-        positions = human_states(present[rows], actions)[..., :2]  # [S, B, 15, 2]
+        positions = future_states(present[rows], actions)[..., :2]  # [S, B, 15, 2]
         true = truth[rows]
         # coverage: [2L, B, 3, 2] quantiles of the first `samples` draws at the horizons
         q = torch.quantile(positions[:samples, :, steps], bounds, dim=0).view(len(levels), 2, *true[:, steps].shape)

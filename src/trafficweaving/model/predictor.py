@@ -12,7 +12,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..scenario import DT
 from .cvae import CVAE, HORIZON, MIN_HISTORY, STATE_DIM
 from .sampler import BatchedSampler
 
@@ -71,17 +70,3 @@ class HumanPredictor:
         latents = self.sampler.sample_latents(context, n, generator)
         actions = self.sampler.sample(context, latents, generator=generator)
         return Prediction(actions * m.label_std + m.label_mean, latents, context["log_p_joint"])
-
-
-def human_states(present: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-    """Human states ``[..., 15, 6]`` at steps t+1..t+15 from its present state ``present [6]``
-    (or a batch ``[..., 6]`` broadcastable against the leading dims of ``actions``) and sampled
-    accelerations ``actions [..., 15, 2]`` (m/s²), by the trapezoid rule (as recorded human cars
-    move)."""
-    lead = torch.broadcast_shapes(present.shape[:-1], actions.shape[:-2])
-    start = lambda k: present[..., None, k:k + 2].expand(*lead, 1, 2)  # noqa: E731
-    acc = torch.cat([start(4), actions.expand(*lead, HORIZON, 2)], dim=-2)  # [..., 16, 2]
-    vel = present[..., None, 2:4] + DT * torch.cumsum(0.5 * (acc[..., 1:, :] + acc[..., :-1, :]), dim=-2)
-    vel_all = torch.cat([start(2), vel], dim=-2)
-    pos = present[..., None, 0:2] + DT * torch.cumsum(0.5 * (vel_all[..., 1:, :] + vel_all[..., :-1, :]), dim=-2)
-    return torch.cat([pos, vel, acc[..., 1:, :]], dim=-1)

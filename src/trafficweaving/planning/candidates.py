@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..dynamics import robot_longitudinal
 from ..scenario import DT, LANE_CENTRE_Y
 from .steering import steer
 
@@ -76,9 +77,7 @@ def rollout(present: np.ndarray, actions: np.ndarray) -> np.ndarray:
     steps = STEPS_PER_WINDOW * w
     # longitudinal: acceleration applied from each step, Euler velocity, trapezoid position
     acc = np.repeat(np.asarray(ACCELERATIONS)[actions // 2], STEPS_PER_WINDOW, axis=1)  # [C, steps], applied from t+k
-    xd = present[2] + DT * np.cumsum(acc, axis=1)  # at t+1..t+steps
-    xd_prev = np.concatenate([np.full((c, 1), present[2]), xd[:, :-1]], axis=1)
-    x = present[0] + np.cumsum(0.5 * DT * (xd_prev + xd), axis=1)
+    x, xd = robot_longitudinal(np.full(c, present[0]), np.full(c, present[2]), acc)  # at t+1..t+steps
     xdd = np.concatenate([acc[:, 1:], acc[:, -1:]], axis=1)  # stored at t+k: applied from t+k (last: held)
 
     # lateral: walk the tree of lane choices, one steering solve per distinct prefix

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ..model.cvae import CVAE, HORIZON, MIN_HISTORY, STATE_DIM
-from ..model.predictor import human_states
+from ..dynamics import future_states
 from ..model.sampler import BatchedSampler
 from ..scenario import DT, LANE_CENTRE_Y
 from .candidates import Candidates, robot_candidates
@@ -137,7 +137,7 @@ class Planner:
         """Costs ``[n, len(cand)]`` of ``n`` sampled human futures for candidates ``cand``, and those futures."""
         start = time.perf_counter()
         actions = self.sampler.sample(cand, n, self.generator)
-        human = human_states(human_present, actions.to(self.dtype))  # [n, C', 15, 6]
+        human = future_states(human_present, actions.to(self.dtype))  # [n, C', 15, 6]
         scores = cost(robot[cand].unsqueeze(0), human)
         rate = n * len(cand) / max(time.perf_counter() - start, 1e-6)
         self.rows_per_second = rate if self.rows_per_second is None else 0.7 * self.rows_per_second + 0.3 * rate

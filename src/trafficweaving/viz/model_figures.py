@@ -13,7 +13,8 @@ from matplotlib.figure import Figure
 
 from ..data.trials import TrialSet
 from ..model.cvae import CVAE, HORIZON
-from ..model.predictor import HumanPredictor, human_states
+from ..dynamics import future_states
+from ..model.predictor import HumanPredictor
 from .figures import _draw_road, _save
 
 
@@ -32,7 +33,7 @@ def plot_predictions(model: CVAE, trials: TrialSet, picks: list[tuple[int, int, 
             raise ValueError(f"t = {t} is outside 4..{len(human) - 1 - HORIZON} for trial {i}")
         history = np.stack([robot[: t + 1], human[: t + 1]], axis=1)
         prediction = predictor.sample(history, robot[None, t + 1:t + 1 + HORIZON], samples, seed)
-        futures = human_states(torch.as_tensor(human[t]), prediction.actions[:, 0].double().cpu()).numpy()  # [n, 15, 6]
+        futures = future_states(torch.as_tensor(human[t]), prediction.actions[:, 0].double().cpu()).numpy()  # [n, 15, 6]
         latents = prediction.latents[:, 0].cpu().numpy()
         x_ahead = np.concatenate([robot[t:t + 1 + HORIZON, 0], human[t:t + 1 + HORIZON, 0], futures[..., 0].ravel()])
         # the last 2 s of history and everything predicted
