@@ -1,4 +1,4 @@
-"""Benchmark: the two-stage planner at the paper's budget (4096 candidates × 16 samples, best 32 ×
+"""Benchmark: the two-stage planner at the paper's budget (every candidate × 16 samples, best 32 ×
 1024: 98,304 human futures per plan), naive vs ours, and the decision quality of the real-time mode.
 
 Measured in one run, same process, same model:
@@ -18,6 +18,8 @@ Measured in one run, same process, same model:
   the same two figures for full-budget plans in bfloat16.
 
     python benchmarks/bench_plan.py [--threads N] [--situations 18] [--deadline 0.3] [--model default]
+
+``--threads`` is an integer in 1..os.cpu_count(), ``--repeats`` and ``--situations`` positive.
 """
 
 from __future__ import annotations
@@ -31,13 +33,16 @@ import numpy as np
 import torch
 
 from trafficweaving.data.generate import generate_trials
-from trafficweaving.model.checkpoint import load_model
-from trafficweaving.model.cvae import HORIZON
-from trafficweaving.planning.candidates import Action, robot_candidates
-from trafficweaving.planning.costs import PaperCost
 from trafficweaving.dynamics import future_states
+from trafficweaving.errors import InputError
+from trafficweaving.model.checkpoint import load_model
+from trafficweaving.model.cvae import ACCEL, STATE_DIM
+from trafficweaving.model.predictor import PRECISIONS, HumanPredictor
+from trafficweaving.planning.candidates import ACCELERATIONS, Action, robot_candidates
+from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.planner import Budget, Planner, example_history
-from trafficweaving.scenario import LANE_CENTRE_Y
+from trafficweaving.scenario import HORIZON, LANE_CENTRE_Y, lane_of
+from trafficweaving.validate import integer, positive_seconds, thread_count
 
 
 def matmul_peak(rows: int, k: int, n: int, repeats: int = 30) -> float:
@@ -62,13 +67,13 @@ def naive_plan(model, history: np.ndarray, first: int, cost, budget: Budget, see
     g = torch.Generator().manual_seed(seed)
     start = time.perf_counter()
     candidates = robot_candidates(history[-1, 0], first)
-    std = lambda a: (torch.as_tensor(a, dtype=torch.float32) - model.feature_mean) / model.feature_std  # noqa: E731
-    past, futures = std(history).reshape(len(history), 12), std(candidates.states)
+    std = lambda a: model.states_to_standard(torch.as_tensor(a, dtype=torch.float32))  # noqa: E731
+    past, futures = std(history).reshape(len(history), 2 * STATE_DIM), std(candidates.states)
     count = len(candidates)
     x = torch.cat([model.encode_history(past[None], torch.tensor([len(history) - 1])).expand(count, -1),
-                   model.encode_robot_future(futures, past[-1, :6].expand(count, -1))], -1)
-    robot_inputs = torch.cat([past[-1, :6].expand(count, 1, -1), futures[:, :-1]], 1)
-    present = ((torch.as_tensor(history[-1, 1, 4:6], dtype=torch.float32) - model.label_mean) / model.label_std)
+                   model.encode_robot_future(futures, past[-1, :STATE_DIM].expand(count, -1))], -1)
+    robot_inputs = torch.cat([past[-1, :STATE_DIM].expand(count, 1, -1), futures[:, :-1]], 1)
+    present = model.actions_to_standard(torch.as_tensor(history[-1, 1, ACCEL], dtype=torch.float32))
     robot = torch.as_tensor(candidates.states, dtype=torch.float32)
     human_present = torch.as_tensor(history[-1, 1], dtype=torch.float32)
 
@@ -77,7 +82,7 @@ def naive_plan(model, history: np.ndarray, first: int, cost, budget: Budget, see
         classes = torch.distributions.Categorical(logits=log_p).sample((n,))  # [n, C', N_z]
         z = torch.nn.functional.one_hot(classes, model.config.latent_classes).flatten(2).float()
         actions = model.sample_actions(model.zx(z, x[index]), robot_inputs[index], present.expand(len(index), -1), g)
-        human = future_states(human_present, actions * model.label_std + model.label_mean)
+        human = future_states(human_present, model.actions_to_physical(actions))
         return cost(robot[index].unsqueeze(0), human).mean(0)
 
     first_cost = scores(torch.arange(count), budget.first_stage_samples)
@@ -104,8 +109,8 @@ def situations(count: int, seed: int = 7):
         contested = [t for t in range(8, len(robot) - 1)
                      if abs(robot[t, 0] - human[t, 0]) < 10.0 and abs(robot[t, 1] - LANE_CENTRE_Y[goal]) > 1.0]
         for t in contested[::4]:
-            accel = min((0.0, 4.0, -3.0, -6.0), key=lambda a: abs(a - robot[t, 4]))
-            lane = "left" if robot[t, 1] > -3.96 else "right"
+            accel = min(ACCELERATIONS, key=lambda a: abs(a - robot[t, 4]))
+            lane = str(lane_of(robot[t, 1]))
             out.append((np.stack([robot[: t + 1], human[: t + 1]], 1), Action.of(accel, lane).index,
                         PaperCost(goal_y=LANE_CENTRE_Y[goal])))
     rng = np.random.default_rng(seed)
@@ -119,23 +124,31 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--situations", type=int, default=18)
     parser.add_argument("--deadline", type=float, default=0.3)
-    parser.add_argument("--realtime-precision", default="auto", choices=("auto", "float32", "bfloat16"))
+    parser.add_argument("--realtime-precision", default="auto", choices=PRECISIONS)
     parser.add_argument("--skip-naive", action="store_true")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    try:
+        threads = thread_count("--threads", args.threads)
+        integer("--repeats", args.repeats, 1)
+        integer("--situations", args.situations, 1)
+        positive_seconds("--deadline", args.deadline)
+    except InputError as error:
+        parser.error(str(error))
+    torch.set_num_threads(threads)
     model = load_model(args.model)
+    exact, low = HumanPredictor(model, precision="float32"), HumanPredictor(model, precision="bfloat16")
     budget = Budget()
     history, first = example_history(), Action.of(0.0, "right").index
     cost = PaperCost(goal_y=LANE_CENTRE_Y["left"])
 
-    report = {"threads": args.threads, "futures": budget.futures}
+    report = {"threads": threads, "futures": budget.futures}
     report["matmul_peak_gflops"] = round(matmul_peak(2048, 136, 512), 1)
-    planner = Planner(model, budget, precision="float32")
+    planner = Planner(exact, budget)
     planner.plan(history, first, cost)  # warm-up
     ours = [planner.plan(history, first, cost).seconds for _ in range(args.repeats)]
     report["seconds"] = round(statistics.median(ours), 3)
     report["achieved_gflops"] = round(decoder_flops(model, budget.futures) / report["seconds"] / 1e9, 1)
-    fast = Planner(model, budget, precision="bfloat16")
+    fast = Planner(low, budget)
     fast.plan(history, first, cost)
     report["bfloat16_seconds"] = round(statistics.median(fast.plan(history, first, cost).seconds for _ in range(args.repeats)), 3)
     if not args.skip_naive:
@@ -144,11 +157,11 @@ def main() -> None:
     print(json.dumps(report), flush=True)
 
     agree, regret, agree_full, regret_full, agree_bf16, regret_bf16, late, spread = [], [], [], [], [], [], [], []
-    realtime = Planner(model, budget, seed=1, precision=args.realtime_precision)
+    realtime = Planner(HumanPredictor(model, precision=args.realtime_precision), budget, seed=1)
     realtime.plan(history, first, cost, deadline=args.deadline)  # warm-up: measures its speed
     for k, (hist, fixed, c) in enumerate(situations(args.situations)):
-        full = Planner(model, budget, seed=100 + k, precision="float32").plan(hist, fixed, c)
-        other = Planner(model, budget, seed=200 + k, precision="float32").plan(hist, fixed, c)
+        full = Planner(exact, budget, seed=100 + k).plan(hist, fixed, c)
+        other = Planner(exact, budget, seed=200 + k).plan(hist, fixed, c)
         rt = realtime.plan(hist, fixed, c, deadline=args.deadline)
         late.append(rt.seconds)
         reference = expected_cost(planner, hist, fixed, c, full.index)
@@ -157,9 +170,9 @@ def main() -> None:
         regret.append(expected_cost(planner, hist, fixed, c, rt.index) - reference)
         agree_full.append(other.actions[1] == full.actions[1])
         regret_full.append(expected_cost(planner, hist, fixed, c, other.index) - reference)
-        low = Planner(model, budget, seed=300 + k, precision="bfloat16").plan(hist, fixed, c)
-        agree_bf16.append(low.actions[1] == full.actions[1])
-        regret_bf16.append(expected_cost(planner, hist, fixed, c, low.index) - reference)
+        lower = Planner(low, budget, seed=300 + k).plan(hist, fixed, c)
+        agree_bf16.append(lower.actions[1] == full.actions[1])
+        regret_bf16.append(expected_cost(planner, hist, fixed, c, lower.index) - reference)
     report["realtime"] = {
         "deadline": args.deadline, "situations": len(late), "max_seconds": round(max(late), 3),
         "within_deadline": int(sum(s <= args.deadline for s in late)),

@@ -1,6 +1,6 @@
 """Benchmark: CVAE training steps per second on this machine, batched vs one exemplar at a time.
 
-Both measure the full training step of DESIGN.md §3 (batch 32, 3 latent samples, dropout,
+Both measure the full training step of model/train.py (batch 32, 3 latent samples, dropout,
 scheduled sampling, Adam, value clipping) on the same data in the same process. The batched step
 runs the 32 exemplars together; the baseline runs the same network computation one exemplar at a
 time and accumulates the gradients (what a per-sample Python loop costs; its KL floor then applies
@@ -20,7 +20,7 @@ import torch
 
 from trafficweaving.data.generate import generate_trials
 from trafficweaving.model.cvae import CVAE
-from trafficweaving.model.train import TrainConfig, _noisy, _Sampler, loss_terms, prepare_data
+from trafficweaving.model.train import TrainConfig, _MinibatchOrder, _noisy, loss_terms, prepare_data
 
 
 def main() -> None:
@@ -33,15 +33,15 @@ def main() -> None:
 
     trials, _ = generate_trials(400, seed=0, progress=False)
     tc = TrainConfig()
-    train_ex, _, std = prepare_data(trials, tc)
-    data = train_ex.standardised(std)
-    sampler = _Sampler(len(data), tc.batch_size, tc.seed)
+    train_ex, _, statistics = prepare_data(trials, tc)
     torch.manual_seed(0)
-    model = CVAE().train()
+    model = CVAE().set_standardisation(*statistics).train()
+    data = train_ex.standardised(model)
+    minibatch = _MinibatchOrder(len(data), tc.batch_size, tc.seed)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
 
     def step(s: int, one_at_a_time: bool) -> None:
-        batch = _noisy(data.batch(sampler(s)), tc.input_noise, tc.input_noise)
+        batch = _noisy(data.batch(minibatch(s)), tc.input_noise, tc.input_noise)
         optimizer.zero_grad(set_to_none=True)
         if one_at_a_time:
             for k in range(len(batch)):

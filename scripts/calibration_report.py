@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trafficweaving.cli import write_figures
+from trafficweaving.viz.figures import write_dataset_figures
 from trafficweaving.data.behaviour import behaviour_samples, compare_behaviour, format_comparison
 from trafficweaving.data.generate import generate_trials
 from trafficweaving.data.hitl import read_hitl
@@ -54,7 +54,7 @@ def main() -> None:
     reference = read_hitl(sorted(Path(args.hitl).glob("*.jld")))
     sim_samples, real_samples = behaviour_samples(trials), behaviour_samples(reference)
     comparison = compare_behaviour(sim_samples, real_samples)
-    write_figures(trials, out / "figures", reference)
+    write_dataset_figures(trials, out / "figures", reference)
 
     pp = lambda v: f"{100 * v:.1f}"  # noqa: E731
     lines = [

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from trafficweaving.cli import DEMO_REAL_PICKS
+from trafficweaving.demo import DEMO_REAL_PICKS
 from trafficweaving.data.trials import load_trials
 from trafficweaving.model.checkpoint import load_model, read_checkpoint
 from trafficweaving.model.evaluate import evaluate

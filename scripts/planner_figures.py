@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from trafficweaving.model.checkpoint import load_model
+from trafficweaving.model.predictor import HumanPredictor
 from trafficweaving.planning.candidates import Action
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.planner import Planner, example_history
@@ -33,7 +34,7 @@ def main() -> None:
         (np.array([-30.0, left, 33.0, 0.0, 0.0, 0.0]), Action.of(4.0, "left").index, "in the left lane at 33 m/s, accelerating"),
     ]
     print(plot_candidates(starts, out / "fig4_candidates.png"))
-    planner = Planner(load_model(args.model), seed=0)
+    planner = Planner(HumanPredictor(load_model(args.model), precision="auto"), seed=0)
     for gap, name in ((2.0, "fig5_plan_side_by_side.png"), (-8.0, "fig5_plan_human_behind.png")):
         print(plot_plan(planner, example_history(gap=gap), Action.of(0.0, "right").index, PaperCost(goal_y=left), out / name))
 

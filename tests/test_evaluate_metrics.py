@@ -8,21 +8,21 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
+from helpers_model import synthetic_trials
 from trafficweaving.cli import main
-from trafficweaving.data.generate import generate_trials
 from trafficweaving.model.checkpoint import load_model
-from trafficweaving.model.cvae import CVAE, HORIZON, CVAEConfig
+from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.model.evaluate import evaluate
 from trafficweaving.model.exemplars import ExemplarSet, build_exemplars
 from trafficweaving.model.metrics import PHASES, evaluate_instances, sampled_metrics, true_positions
 from trafficweaving.dynamics import future_states
 from trafficweaving.model.predictor import HumanPredictor
+from trafficweaving.scenario import HORIZON
 
 
 @pytest.fixture(scope="module")
 def trials():
-    trials, _ = generate_trials(16, seed=4, progress=False)
-    return trials
+    return synthetic_trials(16, seed=4)
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +61,7 @@ def _self_sampled(model, exemplars: ExemplarSet, picks: np.ndarray) -> ExemplarS
     streams = exemplars.streams[exemplars.stream[picks]].copy()
     for k, t in enumerate(exemplars.t[picks]):
         history, robot_future = streams[k, : t + 1], streams[k, t + 1: t + 1 + HORIZON, 0]
-        actions = predictor.sample(history, robot_future[None], n=1, seed=1000 + k).actions[0, 0].double()
+        actions = predictor.predict(history, robot_future[None], n=1, seed=1000 + k).actions[0, 0].double()
         streams[k, t + 1: t + 1 + HORIZON, 1] = future_states(torch.as_tensor(history[-1, 1]), actions).numpy()
     n = len(picks)
     return ExemplarSet(streams, exemplars.lengths[exemplars.stream[picks]], np.arange(n), np.ones(n, np.int64),
@@ -155,9 +155,9 @@ def test_evaluate_json_per_instance_parquet_round_trip(capsys, tmp_path, trials)
 
 @pytest.mark.parametrize("argv, message", [
     (["--per-instance", "{tmp}"], "is a folder"),
-    (["--coverage-samples", "1"], "--coverage-samples must be at least 2"),
-    (["--ade-samples", "0"], "--ade-samples must be a positive integer"),
-    (["--max-sampled-instances", "-1"], "--max-sampled-instances must be 0 or more"),
+    (["--coverage-samples", "1"], "argument --coverage-samples: expected an integer >= 2"),
+    (["--ade-samples", "0"], "argument --ade-samples: expected an integer >= 1"),
+    (["--max-sampled-instances", "-1"], "argument --max-sampled-instances: expected an integer >= 0"),
 ])
 def test_evaluate_rejects_bad_options_in_one_line(capsys, tmp_path, trials, argv, message):
     data = tmp_path / "d.parquet"

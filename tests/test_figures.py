@@ -93,6 +93,7 @@ def test_planner_figures(tmp_path):
     import torch
 
     from trafficweaving.model.cvae import CVAE
+    from trafficweaving.model.predictor import HumanPredictor
     from trafficweaving.planning.candidates import Action
     from trafficweaving.planning.costs import PaperCost
     from trafficweaving.planning.planner import Budget, Planner, example_history
@@ -102,7 +103,7 @@ def test_planner_figures(tmp_path):
     present = example_history()[-1, 0]
     fig4 = plot_candidates([(present, Action.of(0.0, "right").index, "right lane")], tmp_path / "fig4.png")
     torch.manual_seed(0)
-    planner = Planner(CVAE(), Budget(1, 4, 8))
+    planner = Planner(HumanPredictor(CVAE()), Budget(1, 4, 8))
     fig5 = plot_plan(planner, example_history(), Action.of(0.0, "right").index, PaperCost(goal_y=LANE_CENTRE_Y["left"]),
                      tmp_path / "fig5.png", samples=8, scoring_samples=16)
     for path in (fig4, fig5):

@@ -8,16 +8,10 @@ import h5py
 import numpy as np
 import pytest
 
-from trafficweaving.data.hitl import read_hitl
-from trafficweaving.data.trials import load_trials
+from trafficweaving.data.hitl import AGENT_ROLES, read_hitl
+from trafficweaving.data.trials import PLAUSIBLE_RANGES, ROLES, load_trials
 from trafficweaving.errors import InputError
-from trafficweaving.scenario import LANE_CENTRE_Y, MIN_TRIAL_STEPS, lane_of
-
-REPO = Path(__file__).resolve().parents[1]
-HITL_DIR = next(
-    (d for d in (REPO / "shared/reference/hitl", REPO.parent / "shared/reference/hitl") if d.is_dir()),
-    None,
-)
+from trafficweaving.scenario import LANE_CENTRE_Y, MIN_TRIAL_STEPS, STATE_NAMES, lane_of
 
 
 def write_jld(path: Path, car1: np.ndarray | None, car2: np.ndarray | None) -> Path:
@@ -39,11 +33,10 @@ def straight_cars(steps: int = 30) -> tuple[np.ndarray, np.ndarray]:
     return car1[:, :, None].astype(np.float32), car2[:, :, None].astype(np.float32)
 
 
-@pytest.mark.skipif(HITL_DIR is None, reason="the authors' reference data (shared/reference/hitl) is absent")
-def test_reads_the_authors_files():
-    paths = sorted(HITL_DIR.glob("*.jld"))
+def test_reads_the_authors_files(hitl_dir, hitl_files, hitl_trials):
+    paths = hitl_files
     assert len(paths) == 30
-    trials = read_hitl(paths)
+    trials = hitl_trials
 
     assert len(trials) == 30
     assert (trials.roles == ["robot", "human"]).all()
@@ -51,6 +44,8 @@ def test_reads_the_authors_files():
     assert trials.trial_ids.tolist() == list(range(30))
     assert trials.sources.tolist() == [p.name for p in paths]
     assert trials.metadata == {"importer": "hitl"}
+    assert trials.source_path == hitl_dir
+    trials.require_dt()  # the models' time step
     assert set(trials.start_lanes[:, 0]) == {"left", "right"}  # the robot started in both lanes
     assert (trials.start_lanes[:, 0] != trials.start_lanes[:, 1]).all()
     assert np.isfinite(trials.ic_dv).all()
@@ -151,3 +146,55 @@ def test_malformed_input_is_one_line_naming_the_file(tmp_path, case, expected):
 def test_no_files_is_an_error():
     with pytest.raises(InputError, match="no files given"):
         read_hitl([])
+
+
+def test_plausible_ranges_leave_a_wide_margin_around_the_real_recordings(hitl_trials):
+    """Every real value lies inside PLAUSIBLE_RANGES with at least half the real spread to spare."""
+    for k, name in enumerate(STATE_NAMES):
+        values = hitl_trials.states[..., k][np.isfinite(hitl_trials.states[..., k])]
+        low, high = PLAUSIBLE_RANGES[name]
+        margin = 0.5 * (values.max() - values.min())
+        assert low + margin <= values.min() and values.max() <= high - margin, name
+
+
+def test_agent_roles_are_valid_role_labels():
+    assert set(AGENT_ROLES) <= set(ROLES) and len(AGENT_ROLES) == 2
+
+
+def _with(car: np.ndarray, row: str, step: int, value: float) -> np.ndarray:
+    car = car.copy()
+    car[STATE_NAMES.index(row), step, 0] = value
+    return car
+
+
+@pytest.mark.parametrize(
+    "car, quantity, value, expected",
+    [
+        ("car1", "x", -9e6, "car1 (robot) has x = -9e+06 m at step 4 (plausible: -500 to 500 m)"),
+        ("car2", "xd", 250.0, "car2 (human) has xd = 250 m/s at step 4 (plausible: -5 to 80 m/s)"),
+        ("car2", "y", 40.0, "car2 (human) has y = 40 m at step 4 (plausible: -18 to 9 m)"),
+        ("car1", "xdd", -300.0, "car1 (robot) has xdd = -300 m/s² at step 4 (plausible: -30 to 30 m/s²)"),
+        ("car2", "ydd", 120.0, "car2 (human) has ydd = 120 m/s² at step 4 (plausible: -30 to 30 m/s²)"),
+        ("car1", "yd", -20.0, "car1 (robot) has yd = -20 m/s at step 4 (plausible: -15 to 15 m/s)"),
+    ],
+)
+def test_implausible_values_are_refused_naming_file_car_quantity_value_and_range(tmp_path, car, quantity, value, expected):
+    car1, car2 = straight_cars()
+    if car == "car1":
+        car1 = _with(car1, quantity, 4, value)
+    else:
+        car2 = _with(car2, quantity, 4, value)
+    bad = write_jld(tmp_path / "bad.jld", car1, car2)
+    good = write_jld(tmp_path / "good.jld", *straight_cars())
+    with pytest.raises(InputError) as error:
+        read_hitl([good, bad])
+    message = str(error.value)
+    assert message == f"{bad}: {expected}"
+
+
+def test_values_at_the_edge_of_the_plausible_ranges_import(tmp_path):
+    car1, car2 = straight_cars()
+    car1 = _with(_with(car1, "xdd", 3, PLAUSIBLE_RANGES["xdd"][1]), "ydd", 5, PLAUSIBLE_RANGES["ydd"][0])
+    trials = read_hitl([write_jld(tmp_path / "edge.jld", car1, car2)])
+    assert trials.states[0, 0, 3, 4] == PLAUSIBLE_RANGES["xdd"][1]
+    assert trials.source_path == tmp_path / "edge.jld"

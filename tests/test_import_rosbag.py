@@ -10,7 +10,7 @@ import pytest
 from rosbag_writer import TYPESTORE, car_states, sim_times, write_bag
 from rosbags.rosbag1 import Writer
 
-from trafficweaving.data.rosbag import BagRejected, read_rosbags, sanitise
+from trafficweaving.data.rosbag import REJECT_REASONS, BagRejected, read_rosbags, sanitise
 from trafficweaving.data.trials import load_trials
 from trafficweaving.errors import InputError
 from trafficweaving.scenario import CUTOFF_X, DT, LANE_CENTRE_Y
@@ -68,6 +68,24 @@ def _inconsistent(spec):
     return out
 
 
+def _implausible(spec):
+    out = tracks(spec)
+    t, states = out[TOPICS[1]]
+    states = states.copy()
+    states[(t > T0 + 1.0) & (t < T0 + 1.5), 5] = 500.0  # a lateral acceleration of 50 g for 0.5 s
+    out[TOPICS[1]] = (t, states)
+    return out
+
+
+def _random_bytes(path: Path) -> None:
+    path.write_bytes(np.random.default_rng(7).bytes(20_000))
+
+
+def _truncated(path: Path) -> None:
+    write_bag(path, tracks(VALID))
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
 def _other_type(path: Path) -> None:
     float64 = TYPESTORE.types["std_msgs/msg/Float64"]
     with Writer(path) as writer:
@@ -93,6 +111,10 @@ BAGS = {
     "02/trial.bag": (tracks(VALID), "bad_filename"),
     "02/15:59:00_29_0_2_1_4.bag": (lambda path: path.write_bytes(b"not a bag\n"), "unreadable"),
     "02/15:59:30_29_0_2_1_5.bag": (_other_type, "unreadable"),
+    "03/16:00:00_29_0_2_1_1.bag": (_random_bytes, "unreadable"),
+    "03/16:00:30_29_0_2_1_2.bag": (lambda path: path.write_bytes(b""), "unreadable"),
+    "03/16:01:00_29_0_2_1_3.bag": (_truncated, "unreadable"),
+    "03/16:01:30_29_0_2_1_4.bag": (_implausible(VALID), "implausible"),
 }
 
 
@@ -119,13 +141,14 @@ def test_every_bag_has_its_outcome(imported):
     assert imported.files == sorted((name, outcome) for name, (_, outcome) in BAGS.items())
     assert imported.rejected == {
         "bad_filename": 1,
-        "unreadable": 2,
+        "unreadable": 5,
         "missing_topic": 1,
         "timestamp_gap": 1,
         "non_finite": 1,
         "too_short": 1,
         "inconsistent": 1,
         "start_not_recorded": 1,
+        "implausible": 1,
         "collision": 1,
         "off_road": 1,
         "no_lane_swap": 1,
@@ -133,9 +156,11 @@ def test_every_bag_has_its_outcome(imported):
     }
 
 
-def test_valid_trial_matches_its_analytic_trajectory(imported):
+def test_valid_trial_matches_its_analytic_trajectory(imported, bag_dir):
     trials = imported.trials
     assert len(trials) == 2
+    assert trials.source_path == bag_dir
+    trials.require_dt()
     i = trials.sources.tolist().index("01/15:48:04_29_0_2_1_3.bag")
     assert trials.roles[i].tolist() == ["human", "human"]
     assert trials.drivers[i].tolist() == [2, 3]
@@ -203,3 +228,56 @@ def test_directory_errors(tmp_path, bag_dir):
     assert "\n" not in message
     assert "no valid trials among 7 bags" in message
     assert "unreadable 2" in message
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_corrupt_bags_are_rejected_one_by_one_while_the_others_import(tmp_path, seed):
+    """Random bytes, random truncations and random overwritten spans of a valid bag: each corrupt
+    bag gets a rejection reason (never an exception) and the intact bag still imports."""
+    rng = np.random.default_rng(seed)
+    write_bag(tmp_path / "01" / "15:48:04_29_0_2_1_3.bag", tracks(VALID))
+    whole = (tmp_path / "01" / "15:48:04_29_0_2_1_3.bag").read_bytes()
+    corrupt = {
+        "16:00:00_29_0_2_1_1.bag": rng.bytes(int(rng.integers(1, 50_000))),
+        "16:00:01_29_0_2_1_1.bag": whole[: int(rng.integers(0, len(whole)))],
+        "16:00:02_29_0_2_1_1.bag": whole[:13] + rng.bytes(int(rng.integers(1, 5_000))),
+    }
+    spliced = bytearray(whole)
+    at = int(rng.integers(13, len(whole) - 64))
+    spliced[at : at + 64] = rng.bytes(64)
+    corrupt["16:00:03_29_0_2_1_1.bag"] = bytes(spliced)
+    for name, data in corrupt.items():
+        (tmp_path / "02" / name).parent.mkdir(exist_ok=True)
+        (tmp_path / "02" / name).write_bytes(data)
+
+    result = read_rosbags(tmp_path)
+    outcomes = dict(result.files)
+    assert outcomes["01/15:48:04_29_0_2_1_3.bag"] == "ok"
+    assert outcomes["02/16:00:00_29_0_2_1_1.bag"] == "unreadable"
+    assert outcomes["02/16:00:02_29_0_2_1_1.bag"] == "unreadable"
+    assert all(outcome == "ok" or outcome in REJECT_REASONS for outcome in outcomes.values())
+    assert len(result.trials) == sum(outcome == "ok" for outcome in outcomes.values()) >= 1
+
+
+def test_a_folder_of_only_unreadable_bags_is_one_input_error(tmp_path):
+    (tmp_path / "16:00:00_29_0_2_1_1.bag").write_bytes(b"")
+    (tmp_path / "16:00:01_29_0_2_1_1.bag").write_bytes(np.random.default_rng(0).bytes(1000))
+    with pytest.raises(InputError) as error:
+        read_rosbags(tmp_path)
+    assert str(error.value) == f"{tmp_path}: no valid trials among 2 bags (rejected: unreadable 2)"
+
+
+def test_not_a_folder_is_an_input_error(tmp_path):
+    bag = tmp_path / "15:48:04_29_0_2_1_3.bag"
+    write_bag(bag, tracks(VALID))
+    with pytest.raises(InputError, match="no such directory"):
+        read_rosbags(bag)
+
+
+def test_sanitise_rejects_implausible_values_before_the_validity_rules():
+    grid = np.arange(0, 7, DT)
+    states = np.stack([car_states(grid, *car) for car in VALID[0]])  # [2, T, 6]
+    states[0, 10, 1] = -60.0  # 60 m to the right of the road: implausible rather than off_road
+    with pytest.raises(BagRejected) as rejected:
+        sanitise(states)
+    assert rejected.value.reason == "implausible"

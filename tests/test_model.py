@@ -4,19 +4,22 @@ density and its sampler, the sampling API, and exemplar construction."""
 import glob
 import math
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from trafficweaving.data.generate import generate_trials
+from helpers_model import synthetic_trials
 from trafficweaving.data.hitl import read_hitl
+from trafficweaving.errors import InputError
 from trafficweaving.model.cvae import CVAE, VARIANTS, CVAEConfig
-from trafficweaving.model.evaluate import evaluate, model_standardisation
-from trafficweaving.model.exemplars import Standardisation, build_exemplars, split_by_trial
+from trafficweaving.model.evaluate import evaluate
+from trafficweaving.model.exemplars import build_exemplars, split_by_trial, state_statistics
 from trafficweaving.model.gmm import GMM, HoldMixture
 from trafficweaving.model.predictor import HumanPredictor
+from trafficweaving.scenario import HORIZON, MIN_HISTORY
 
 SHARED = Path(os.environ.get("TRAFFICWEAVING_SHARED", Path(__file__).resolve().parents[2] / "shared")) / "reference"
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -28,8 +31,13 @@ needs_reference = pytest.mark.skipif(not (HITL and (AUTHORS / "weights.npz").is_
 
 @pytest.fixture(scope="module")
 def small_trials():
-    trials, _ = generate_trials(24, seed=3, progress=False)
-    return trials
+    return synthetic_trials(24, seed=3)
+
+
+def fitted_model(trials, config: CVAEConfig = CVAEConfig()) -> CVAE:
+    """An untrained float64 model (seed 0) standardised for ``trials``."""
+    torch.manual_seed(0)
+    return CVAE(config).double().set_standardisation(*state_statistics(trials)).eval()
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +46,7 @@ def authors():
 
     model = load_authors_model(AUTHORS / "weights.npz").double()
     exemplars = build_exemplars(read_hitl(HITL))
-    data = exemplars.standardised(model_standardisation(model), dtype=torch.float64)
+    data = exemplars.standardised(model)
     reference = dict(np.load(AUTHORS / "reference_outputs.npz"))
     return model, exemplars, data, reference
 
@@ -47,9 +55,9 @@ def authors():
 def test_exemplars_cover_every_valid_time_of_every_human(small_trials):
     ex = build_exemplars(small_trials)
     assert len(ex.streams) == 2 * len(small_trials)  # both cars of a human–human trial are the human once
-    expected = sum(2 * (n - 15 - 4) for n in small_trials.lengths)
+    expected = sum(2 * (n - HORIZON - (MIN_HISTORY - 1)) for n in small_trials.lengths)
     assert len(ex) == expected
-    assert ex.t.min() == 4 and np.all(ex.t <= ex.lengths[ex.stream] - 16)
+    assert ex.t.min() == MIN_HISTORY - 1 and np.all(ex.t <= ex.lengths[ex.stream] - HORIZON - 1)
     # stream k of trial i, human agent a: the other car is stored first
     k = 1
     i, a = ex.stream_trial[k], ex.stream_agent[k]
@@ -57,17 +65,24 @@ def test_exemplars_cover_every_valid_time_of_every_human(small_trials):
     np.testing.assert_array_equal(ex.streams[k, : small_trials.lengths[i], 0], small_trials.trajectory(i, 1 - a))
 
 
+def test_exemplars_refuse_data_at_another_time_step(small_trials):
+    slow = replace(small_trials, dt=0.2, source_path=Path("slow.parquet"))
+    with pytest.raises(InputError, match=r"slow.parquet: time step 0.2 s \(expected 0.1 s"):
+        build_exemplars(slow)
+
+
 def test_batches_slice_history_future_and_labels(small_trials):
     ex = build_exemplars(small_trials)
-    std = Standardisation.fit(small_trials)
-    data = ex.standardised(std, dtype=torch.float64)
+    model = fitted_model(small_trials)
+    data = ex.standardised(model)
     e = 37
     batch = data.batch(torch.tensor([e]))
     s, t = ex.stream[e], ex.t[e]
-    physical = lambda v: v.numpy() * std.feature_std + std.feature_mean  # noqa: E731
-    np.testing.assert_allclose(physical(batch.robot_future[0]), ex.streams[s, t + 1:t + 16, 0], atol=1e-9)
+    physical = lambda v: (v * model.feature_std + model.feature_mean).numpy()  # noqa: E731
+    future = slice(t + 1, t + 1 + HORIZON)
+    np.testing.assert_allclose(physical(batch.robot_future[0]), ex.streams[s, future, 0], atol=1e-9)
     np.testing.assert_allclose(physical(batch.human_present[0]), ex.streams[s, t, 1], atol=1e-9)
-    np.testing.assert_allclose(batch.y[0].numpy() * std.label_std + std.label_mean, ex.streams[s, t + 1:t + 16, 1, 4:6], atol=1e-9)
+    np.testing.assert_allclose(model.actions_to_physical(batch.y[0]).numpy(), ex.streams[s, future, 1, 4:6], atol=1e-9)
     assert batch.history.shape == (1, t + 1, 12)
 
 
@@ -77,19 +92,25 @@ def test_split_is_by_trial_and_80_20():
 
 
 def test_standardisation_is_mean_and_std_of_all_states(small_trials):
-    std = Standardisation.fit(small_trials)
+    mean, std = state_statistics(small_trials)
     rows = np.concatenate([small_trials.states[i, :, : n].reshape(-1, 6) for i, n in enumerate(small_trials.lengths)])
-    np.testing.assert_allclose(std.feature_mean, rows.mean(0))
-    np.testing.assert_allclose(std.label_std, rows[:, 4:6].std(0))
+    np.testing.assert_allclose(mean, rows.mean(0))
+    np.testing.assert_allclose(std, rows.std(0))
+    model = fitted_model(small_trials)
+    np.testing.assert_array_equal(model.feature_mean.numpy(), mean)
+    np.testing.assert_array_equal(model.label_std.numpy(), std[4:6])  # the human's actions are its accelerations
+    states = torch.as_tensor(rows[:3])
+    torch.testing.assert_close(model.states_to_standard(states), (states - torch.as_tensor(mean)) / torch.as_tensor(std))
+    with pytest.raises(ValueError, match="positive finite std"):
+        model.set_standardisation(mean, np.zeros(6))
 
 
 # ---------------------------------------------------------------- model shapes
 @pytest.mark.parametrize("variant", list(VARIANTS))
 def test_every_variant_gives_normalised_latents_and_finite_likelihoods(variant, small_trials):
     torch.manual_seed(0)
-    model = CVAE(CVAEConfig.variant(variant)).eval()
-    data = build_exemplars(small_trials).standardised(Standardisation.fit(small_trials))
-    batch = data.batch(torch.arange(8))
+    model = CVAE(CVAEConfig.variant(variant)).set_standardisation(*state_statistics(small_trials)).eval()
+    batch = build_exemplars(small_trials).standardised(model).batch(torch.arange(8))
     log_p_z, log_p_y = model.log_likelihoods(batch)
     z = model.config.latent_values
     assert log_p_z.shape == (8, z) and log_p_y.shape == (8, z)
@@ -214,7 +235,7 @@ def test_reference_instances_are_ours(authors):
 def test_authors_latent_prior_and_likelihoods_match_tensorflow(authors, device):
     model, exemplars, _, reference = authors
     model = model.to(device)
-    data = exemplars.standardised(model_standardisation(model), device, torch.float64)
+    data = exemplars.standardised(model)
     with torch.no_grad():
         log_p_z, log_p_y = model.log_likelihoods(data.batch(torch.arange(len(data), device=device)))
     model.cpu()
@@ -295,9 +316,9 @@ def test_sampling_shapes_and_determinism(small_trials, device):
     torch.manual_seed(0)
     predictor = HumanPredictor(CVAE().to(device))
     history, futures = _situation(small_trials)
-    a = predictor.sample(history, futures, n=7, seed=11)
-    b = predictor.sample(history, futures, n=7, seed=11)
-    c = predictor.sample(history, futures, n=7, seed=12)
+    a = predictor.predict(history, futures, n=7, seed=11)
+    b = predictor.predict(history, futures, n=7, seed=11)
+    c = predictor.predict(history, futures, n=7, seed=12)
     assert a.actions.shape == (7, 5, 15, 2) and a.latents.shape == (7, 5) and a.log_p_z.shape == (5, 25)
     assert torch.equal(a.actions, b.actions) and torch.equal(a.latents, b.latents)
     assert not torch.equal(a.actions, c.actions)
@@ -311,7 +332,7 @@ def test_sampled_latents_follow_the_prior():
     trials = read_hitl(HITL[:1])
     predictor = HumanPredictor(load_authors_model(AUTHORS / "weights.npz"))
     history, futures = _situation(trials, t=10, candidates=2)
-    draw = predictor.sample(history, futures, n=20_000, seed=0)
+    draw = predictor.predict(history, futures, n=20_000, seed=0)
     frequencies = torch.stack([torch.bincount(draw.latents[:, j], minlength=25) for j in range(2)]).double() / 20_000
     torch.testing.assert_close(frequencies, draw.log_p_z.exp().double(), atol=0.012, rtol=0)
 
@@ -320,22 +341,21 @@ def test_sampling_rejects_bad_inputs(small_trials):
     predictor = HumanPredictor(CVAE())
     history, futures = _situation(small_trials)
     with pytest.raises(ValueError, match=r"history has 3 steps \(expected at least 5\)"):
-        predictor.sample(history[:3], futures, 2)
+        predictor.predict(history[:3], futures, 2)
     with pytest.raises(ValueError, match=r"robot_futures has shape \[5, 14, 6\]"):
-        predictor.sample(history, futures[:, :14], 2)
+        predictor.predict(history, futures[:, :14], 2)
     bad = futures.copy()
     bad[0, 0, 0] = np.nan
     with pytest.raises(ValueError, match="robot_futures has NaN"):
-        predictor.sample(history, bad, 2)
+        predictor.predict(history, bad, 2)
     with pytest.raises(ValueError, match="n must be a positive integer"):
-        predictor.sample(history, futures, 0)
+        predictor.predict(history, futures, 0)
 
 
 # ---------------------------------------------------------------- calibration
 def test_calibration_scales_the_output_widths_and_tempers_the_latent_prior(small_trials):
-    torch.manual_seed(0)
-    model = CVAE(CVAEConfig.variant("cvae-hold")).double().eval()
-    batch = build_exemplars(small_trials).standardised(Standardisation.fit(small_trials), dtype=torch.float64).batch(torch.arange(6))
+    model = fitted_model(small_trials, CVAEConfig.variant("cvae-hold"))
+    batch = build_exemplars(small_trials).standardised(model).batch(torch.arange(6))
     x = model.encode(batch)
     zx = model.zx(model.latent_onehots.unsqueeze(1), x)
     _, plain = model.decode(zx, batch)
@@ -347,19 +367,6 @@ def test_calibration_scales_the_output_widths_and_tempers_the_latent_prior(small
     torch.testing.assert_close(model.p_z_logits(x), logits / 2.0)
     with pytest.raises(ValueError, match="calibration must be positive"):
         model.set_calibration(0.0, 1.0)
-
-
-def test_checkpoints_without_calibration_load_uncalibrated(tmp_path):
-    from trafficweaving.model.checkpoint import load_checkpoint, save_checkpoint
-
-    model = CVAE(CVAEConfig.variant("cvae-hold"))
-    save_checkpoint(tmp_path / "m.pt", model)
-    payload = torch.load(tmp_path / "m.pt", weights_only=True)
-    for name in ("latent_temperature", "output_scale"):
-        del payload["state_dict"][name]  # as written before calibration existed
-    torch.save(payload, tmp_path / "old.pt")
-    loaded, _ = load_checkpoint(tmp_path / "old.pt")
-    assert loaded.latent_temperature.item() == 1.0 and loaded.output_scale.item() == 1.0
 
 
 def test_calibration_choice_is_the_best_nll_within_the_coverage_band():

@@ -5,16 +5,17 @@ import numpy as np
 import pytest
 import torch
 
-from trafficweaving.dynamics import integrate_trapezoid
+from trafficweaving.dynamics import future_states, integrate_trapezoid
 from trafficweaving.model.cvae import CVAE, CVAEConfig
-from trafficweaving.planning.candidates import ACCELERATIONS, Action, action_sequences, robot_candidates, rollout
+from trafficweaving.model.predictor import HumanPredictor
+from trafficweaving.model.sampler import BatchedRollout
+from trafficweaving.planning.candidates import (ACCELERATIONS, N_ACTIONS, N_CANDIDATES, WINDOWS, Action, action_sequences,
+                                                robot_candidates, rollout)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
-from trafficweaving.dynamics import future_states
-from trafficweaving.planning.planner import Budget, Planner
-from trafficweaving.model.sampler import BatchedSampler
+from trafficweaving.planning.planner import Budget, Planner, example_history
 from trafficweaving.planning.steering import optimal_time, steer, steering_cost
-from trafficweaving.scenario import DT, LANE_CENTRE_Y
+from trafficweaving.scenario import DT, HORIZON, LANE_CENTRE_Y
 
 LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
 STATES = np.array([[RIGHT, 0.0, 0.0], [LEFT, 0.4, -0.5], [-3.5, -1.2, 2.0], [-5.0, 0.8, 0.3]])
@@ -67,6 +68,11 @@ def test_at_target_means_no_motion():
 
 # ---------------------------------------------------------------- candidates
 PRESENT = np.array([-90.0, RIGHT, 29.0, 0.0, 0.0, 0.0])
+
+
+def test_the_candidate_counts_follow_from_the_horizon_and_the_actions():
+    assert (WINDOWS, N_ACTIONS, N_CANDIDATES) == (5, 8, 4096) and WINDOWS * 3 == HORIZON
+    assert Budget().futures == 4096 * 16 + 32 * 1024
 
 
 def test_4096_distinct_candidates_with_the_first_window_fixed():
@@ -168,8 +174,9 @@ def test_fast_sampler_equals_the_models_sampling_given_the_same_random_numbers(v
         model.set_calibration(*calibration)
     history = torch.randn(9, 12, dtype=torch.float64)
     futures = torch.randn(6, 15, 6, dtype=torch.float64)
-    fast = BatchedSampler(model, chunk_rows=5)  # chunks that split candidates
-    context = fast.encode(history, futures)
+    present = torch.randn(2, dtype=torch.float64)  # the human's present action
+    fast = BatchedRollout(model, chunk_rows=5)  # chunks that split candidates
+    context = fast.encode(history, futures, present)
     g = torch.Generator().manual_seed(1)
     latents = fast.sample_latents(context, 4, g)
     noise = (torch.rand(4, 6, 15, generator=g, dtype=torch.float64), torch.randn(4, 6, 15, 2, generator=g, dtype=torch.float64))
@@ -179,15 +186,31 @@ def test_fast_sampler_equals_the_models_sampling_given_the_same_random_numbers(v
                        model.encode_robot_future(futures, history[-1, :6].expand(6, -1))], -1)
         zx = torch.cat([model.latent_onehots[latents], x.expand(4, -1, -1)], -1)
         robot_inputs = torch.cat([history[-1, :6].expand(6, 1, -1), futures[:, :-1]], 1)
-        present = ((history[-1, 10:12] * model.feature_std[4:6] + model.feature_mean[4:6] - model.label_mean) / model.label_std)
         reference = model.sample_actions(zx, robot_inputs, present.expand(6, -1), noise=noise)
     torch.testing.assert_close(ours, reference, rtol=0, atol=1e-10)
+
+
+def test_the_predictors_one_shot_prediction_is_its_planning_protocol():
+    torch.manual_seed(0)
+    predictor = HumanPredictor(CVAE(CVAEConfig.variant("cvae-hold")))
+    history = example_history()
+    futures = robot_candidates(history[-1, 0], 0).states[:6]
+    prediction = predictor.predict(history, futures, n=3, seed=5)
+    predictor.prepare(history, futures)
+    actions = predictor.sample(torch.arange(6), 3, torch.Generator().manual_seed(5))
+    assert prediction.actions.shape == (3, 6, 15, 2) and prediction.log_p_z.shape == (6, 25)
+    torch.testing.assert_close(actions, prediction.actions, rtol=0, atol=0)
+    subset = predictor.sample(torch.tensor([4, 1]), 2, torch.Generator().manual_seed(1))
+    assert subset.shape == (2, 2, 15, 2) and torch.isfinite(subset).all()
+    assert predictor.precision == "float32"
 
 
 # ---------------------------------------------------------------- two-stage planner on a toy model
 class ToyHuman:
     """Human accelerations ``N(0, 1)`` per step, independent of the robot: with :func:`toy_cost`
     each candidate's expected cost is known exactly."""
+
+    device, dtype = torch.device("cpu"), torch.float32
 
     def prepare(self, history, robot_futures):
         pass
@@ -214,7 +237,7 @@ def _accelerates_throughout(plan):
 
 def test_two_stage_selection_finds_the_known_optimum():
     for seed in range(3):
-        plan = Planner(ToyHuman(), seed=seed, device="cpu").plan(HISTORY_TOY, Action.of(0.0, "right").index, cost=toy_cost)
+        plan = Planner(ToyHuman(), seed=seed).plan(HISTORY_TOY, Action.of(0.0, "right").index, cost=toy_cost)
         assert _accelerates_throughout(plan)
         assert plan.futures == 4096 * 16 + 32 * 1024 and len(plan.finalists) == 32
         assert set(np.argsort(plan.first_stage_cost)[:32]) == set(plan.finalists)
@@ -223,7 +246,7 @@ def test_two_stage_selection_finds_the_known_optimum():
 def test_second_stage_corrects_a_noisy_first_stage():
     corrected = 0
     for seed in range(6):
-        plan = Planner(ToyHuman(), seed=seed, device="cpu").plan(HISTORY_TOY, Action.of(0.0, "right").index, cost=toy_cost)
+        plan = Planner(ToyHuman(), seed=seed).plan(HISTORY_TOY, Action.of(0.0, "right").index, cost=toy_cost)
         stage1_choice = plan.candidates.actions[int(np.argmin(plan.first_stage_cost))]
         corrected += not all(Action(int(a)).acceleration == 4.0 for a in stage1_choice[1:])
         assert _accelerates_throughout(plan)
@@ -231,7 +254,7 @@ def test_second_stage_corrects_a_noisy_first_stage():
 
 
 def test_budget_counts_are_configurable():
-    plan = Planner(ToyHuman(), device="cpu").plan(HISTORY_TOY, 0, toy_cost, budget=Budget(2, 5, 7))
+    plan = Planner(ToyHuman()).plan(HISTORY_TOY, 0, toy_cost, budget=Budget(2, 5, 7))
     assert plan.futures == 4096 * 2 + 5 * 7 and len(plan.finalists) == 5 and plan.second_stage_samples == 7
 
 
@@ -245,7 +268,7 @@ def _history(steps=10):
 
 def test_real_time_mode_returns_within_the_deadline():
     torch.manual_seed(0)
-    planner = Planner(CVAE())
+    planner = Planner(HumanPredictor(CVAE()))
     history = _history()
     for deadline in (1.0, 0.6):
         plan = planner.plan(history, Action.of(0.0, "right").index, PaperCost(goal_y=LEFT), deadline=deadline)
@@ -255,7 +278,7 @@ def test_real_time_mode_returns_within_the_deadline():
 
 def test_mpc_holds_then_replans_every_window_with_the_fixed_first_window():
     torch.manual_seed(0)
-    policy = MPCPolicy(Planner(CVAE()), budget=Budget(1, 2, 2))
+    policy = MPCPolicy(Planner(HumanPredictor(CVAE())), budget=Budget(1, 2, 2))
     history = _history(1)
     policy.reset(history[0, 0])
     for t in range(HOLD_STEPS + 9):

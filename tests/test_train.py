@@ -1,4 +1,4 @@
-"""Training: the schedules of DESIGN.md §3, the loss, checkpoints (round trip, resume, bad files)."""
+"""Training: the schedules (docs/model.md, "Training"), the loss, checkpoints (round trip, resume, bad files)."""
 
 import math
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from trafficweaving.data.generate import generate_trials
+from helpers_model import synthetic_trials
 from trafficweaving.errors import InputError
-from trafficweaving.model.checkpoint import load_checkpoint, load_model, save_checkpoint
+from trafficweaving.model.checkpoint import load_checkpoint, load_model, save_checkpoint, write_payload
 from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.model.exemplars import build_exemplars
 from trafficweaving.model.evaluate import evaluate
@@ -19,8 +19,7 @@ QUICK = TrainConfig(steps=6, validate_every=3, checkpoint_every=3, validation_ex
 
 @pytest.fixture(scope="module")
 def trials():
-    trials, _ = generate_trials(20, seed=5, progress=False)
-    return trials
+    return synthetic_trials(20, seed=5)
 
 
 def test_schedules_follow_the_paper():
@@ -35,10 +34,10 @@ def test_schedules_follow_the_paper():
 
 
 def test_kl_term_has_the_0_07_floor_per_latent_variable(trials):
-    train_ex, _, std = prepare_data(trials, TrainConfig())
-    batch = train_ex.standardised(std).batch(torch.arange(16))
+    train_ex, _, statistics = prepare_data(trials, TrainConfig())
     torch.manual_seed(0)
-    model = CVAE(CVAEConfig.variant("no-latent"))  # a single latent value: KL(q‖p) is 0
+    model = CVAE(CVAEConfig.variant("no-latent")).set_standardisation(*statistics)  # a single latent value: KL(q‖p) is 0
+    batch = train_ex.standardised(model).batch(torch.arange(16))
     _, parts = loss_terms(model, batch, TrainConfig(), step=0)
     assert parts["kl"] == pytest.approx(0.0, abs=1e-6)
     tc = TrainConfig(recurrent_dropout=0, p_z_dropout=0, scheduled_sampling=0)
@@ -70,7 +69,7 @@ def test_resumed_training_equals_uninterrupted_training(trials, tmp_path):
 
 def test_resume_refuses_other_data(trials, tmp_path):
     train(trials, tmp_path / "m.pt", tc=QUICK, progress=False, log=lambda _: None)
-    other, _ = generate_trials(20, seed=6, progress=False)
+    other = synthetic_trials(20, seed=6)
     with pytest.raises(InputError, match="different data"):
         train(other, tmp_path / "n.pt", tc=QUICK, resume=tmp_path / "m.pt", progress=False, log=lambda _: None)
 
@@ -101,13 +100,13 @@ def test_bad_checkpoints_give_one_line_errors(tmp_path):
     save_checkpoint(tmp_path / "m.pt", model)
     payload = torch.load(tmp_path / "m.pt", weights_only=True)
     payload["state_dict"]["decoder.bias"] = torch.zeros(7)
-    torch.save(payload, tmp_path / "shape.pt")
+    write_payload(tmp_path / "shape.pt", payload)
     fails(tmp_path / "shape.pt", r"tensor decoder.bias has shape \[7\] \(expected \[512\]\)")
     payload["state_dict"]["decoder.bias"] = torch.full((512,), float("nan"))
-    torch.save(payload, tmp_path / "nan.pt")
+    write_payload(tmp_path / "nan.pt", payload)
     fails(tmp_path / "nan.pt", "NaN or infinite")
     del payload["state_dict"]["decoder.bias"]
-    torch.save(payload, tmp_path / "missing.pt")
+    write_payload(tmp_path / "missing.pt", payload)
     fails(tmp_path / "missing.pt", "lacks tensor decoder.bias")
     payload["version"] = 99
     torch.save(payload, tmp_path / "version.pt")
@@ -132,7 +131,7 @@ def pretrained(trials, tmp_path_factory):
 def test_fine_tuning_keeps_the_models_standardisation_and_records_its_origin(pretrained, tmp_path):
     from dataclasses import replace
 
-    other, _ = generate_trials(12, seed=9, progress=False)
+    other = synthetic_trials(12, seed=9)
     out = tmp_path / "tuned.pt"
     result = train(other, out, None, replace(QUICK, lr_initial=1e-4), init=pretrained, progress=False, log=lambda _: None)
     initial, init_payload = load_checkpoint(pretrained)

@@ -8,82 +8,144 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
+import signal
 import sys
 import time
 from pathlib import Path
 
+from .atomic import check_output_file, check_output_folder
 from .errors import InputError
+from .scenario import HORIZON, MIN_HISTORY, MIN_TRIAL_STEPS
 
-DEFAULT_HITL_DIRS = ("../shared/reference/hitl", "shared/reference/hitl")
-DEMO_REAL_PICKS = [(2, 1, 10), (7, 1, 20), (12, 1, 25)]
-"""(trial, human agent, t) of the real trials drawn in the demo's prediction figure."""
+SEED_MAX = 2**32 - 1
+"""Largest ``--seed`` (NumPy and PyTorch accept every seed in 0..2³²-1 on every platform)."""
+
+
+class _Terminated(BaseException):
+    """Raised in the main thread when SIGTERM arrives, so that open outputs are cleaned up."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the project's error convention: one line on stderr and exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+# ---------------------------------------------------------------- option types
+def _integer(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+
+
+def _int_at_least(low: int, high: int | None = None):
+    """An argparse type: an integer in ``low..high``."""
+    def parse(text: str) -> int:
+        value = _integer(text)
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"expected an integer in {low}..{high if high is not None else ''}, got {value}"
+                                             if high is not None else f"expected an integer >= {low}, got {value}")
+        return value
+    return parse
+
+
+def _float_in(low: float, high: float, include_low: bool = False, include_high: bool = False):
+    """An argparse type: a finite float in the interval from ``low`` to ``high``."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        above = value >= low if include_low else value > low
+        below = value <= high if include_high else value < high
+        if not (math.isfinite(value) and above and below):
+            interval = f"{'[' if include_low else '('}{low:g}, {high:g}{']' if include_high else ')'}"
+            raise argparse.ArgumentTypeError(f"expected a finite number in {interval}, got {text}")
+        return value
+    return parse
+
+
+POSITIVE = _int_at_least(1)
+NON_NEGATIVE = _int_at_least(0)
+SEED = _int_at_least(0, SEED_MAX)
+
+
+def _json_safe(value):
+    """``value`` with every non-finite float replaced by None (JSON has no NaN or Infinity) and
+    NumPy scalars as Python numbers."""
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if hasattr(value, "item") and getattr(value, "ndim", None) == 0:
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def _emit(args, payload: dict, text: str) -> None:
-    print(json.dumps(payload) if args.json else text)
-
-
-def _table1_text(table: dict, counts: dict) -> str:
-    from .data.stats import TABLE1_PAPER
-
-    def cell(dv, k):
-        value = table[dv][k]
-        ours = "   -  " if value is None else f"{100 * value:5.1f}%"
-        return f"{ours} (paper {100 * TABLE1_PAPER[dv][k]:4.1f}%, n={counts[dv][k]})"
-
-    lines = ["Table I: fraction of trials where the car starting in the left lane passes in front",
-             f"{'tco':>5} | {'Δv = -2 m/s':^30} | {'Δv = +2 m/s':^30}"]
-    for k in ("1", "2", "3"):
-        lines.append(f"{k + ' s':>5} | {cell('-2', k):^30} | {cell('2', k):^30}")
-    lines.append(f"Δv = 0 (all tco): {cell('0', 'all')}")
-    return "\n".join(lines)
+    print(json.dumps(_json_safe(payload), allow_nan=False) if args.json else text)
 
 
 # ---------------------------------------------------------------- commands
+def _log(args):
+    """Progress lines: stderr under ``--json`` (stdout holds the one JSON object), else stdout."""
+    return (lambda line: print(line, file=sys.stderr)) if args.json else print
+
+
+def _fmt(value) -> str:
+    return "n/a" if value is None else f"{value:.3f}"
+
+
 def cmd_generate(args) -> None:
     from .data.generate import generate_trials
 
-    if args.trials < 1:
-        raise InputError(f"--trials must be a positive integer, got {args.trials}")
+    out = check_output_file(args.out, "--out")
     start = time.perf_counter()
     trials, report = generate_trials(args.trials, seed=args.seed, pairs=args.pairs, progress=not args.json)
-    trials.write_parquet(args.out)
+    trials.write_parquet(out)
     seconds = time.perf_counter() - start
     payload = {"trials": len(trials), "simulated": report.simulated, "rejected": report.rejected,
-               "seed": args.seed, "out": str(args.out), "seconds": round(seconds, 3)}
+               "seed": args.seed, "out": str(out), "seconds": round(seconds, 3)}
     rejected = ", ".join(f"{k} {v}" for k, v in report.rejected.items())
-    _emit(args, payload, f"wrote {len(trials)} valid trials to {args.out} in {seconds:.1f} s "
+    _emit(args, payload, f"wrote {len(trials)} valid trials to {out} in {seconds:.1f} s "
                          f"({report.simulated} simulated; rejected: {rejected})")
 
 
 def cmd_import(args) -> None:
+    out = check_output_file(args.out, "--out")
     if args.source == "hitl":
         from .data.hitl import read_hitl
 
         trials = read_hitl(args.inputs)
-        trials.write_parquet(args.out)
-        _emit(args, {"trials": len(trials), "out": str(args.out)},
-              f"imported {len(trials)} human-in-the-loop trials into {args.out}")
+        trials.write_parquet(out)
+        _emit(args, {"trials": len(trials), "out": str(out)}, f"imported {len(trials)} human-in-the-loop trials into {out}")
     else:
         from .data.rosbag import read_rosbags
 
         if len(args.inputs) != 1:
             raise InputError(f"import rosbag takes one folder of .bag files, got {len(args.inputs)} paths")
         result = read_rosbags(args.inputs[0])
-        result.trials.write_parquet(args.out)
+        result.trials.write_parquet(out)
         rejected_total = sum(result.rejected.values())
         _emit(args, {"trials": len(result.trials), "rejected": rejected_total,
-                     "rejected_by_reason": result.rejected, "out": str(args.out)},
-              f"imported {len(result.trials)} trials into {args.out}; rejected {rejected_total} bags "
+                     "rejected_by_reason": result.rejected, "out": str(out)},
+              f"imported {len(result.trials)} trials into {out}; rejected {rejected_total} bags "
               f"({', '.join(f'{k} {v}' for k, v in result.rejected.items()) or 'none'})")
 
 
 def cmd_stats(args) -> None:
     from .data.behaviour import behaviour_samples, compare_behaviour, format_comparison, summarise
-    from .data.stats import table1
+    from .data.stats import format_table1, table1
     from .data.trials import load_trials
 
     trials = load_trials(args.data)
+    reference = load_trials(args.reference) if args.reference else None
     t1 = table1(trials)
     humans = behaviour_samples(trials, role="human")
     payload = {
@@ -95,10 +157,9 @@ def cmd_stats(args) -> None:
         "behaviour": {name: summarise(values) for name, values in humans.items()},
     }
     text = [f"{args.data}: {len(trials)} trials, {trials.lengths.min()}–{trials.lengths.max()} steps "
-            f"(mean {trials.lengths.mean():.1f}) of {trials.dt} s", _table1_text(t1["table1"], t1["counts"])]
-    if args.reference:
-        reference = behaviour_samples(load_trials(args.reference), role="human")
-        comparison = compare_behaviour(humans, reference)
+            f"(mean {trials.lengths.mean():.1f}) of {trials.dt} s", format_table1(t1["table1"], t1["counts"])]
+    if reference is not None:
+        comparison = compare_behaviour(humans, behaviour_samples(reference, role="human"))
         payload["behaviour_vs_reference"] = comparison
         text += [f"Human behaviour vs {args.reference}:", format_comparison(comparison)]
     _emit(args, payload, "\n".join(text))
@@ -106,30 +167,13 @@ def cmd_stats(args) -> None:
 
 def cmd_plot(args) -> None:
     from .data.trials import load_trials
+    from .viz.figures import write_dataset_figures
 
+    out = check_output_folder(args.out, "--out")
     trials = load_trials(args.data)
     reference = load_trials(args.reference) if args.reference else None
-    paths = write_figures(trials, Path(args.out), reference)
+    paths = write_dataset_figures(trials, out, reference)
     _emit(args, {"figures": [str(p) for p in paths]}, "\n".join(f"wrote {p}" for p in paths))
-
-
-def write_figures(trials, out: Path, reference=None) -> list[Path]:
-    """Write the dataset figures (trajectories, profiles, Table I, and behaviour vs ``reference``
-    when given) into folder ``out``; returns their paths."""
-    from .data.behaviour import behaviour_samples
-    from .data.stats import table1
-    from .viz.figures import plot_behaviour, plot_profiles, plot_table1, plot_trajectories
-
-    out.mkdir(parents=True, exist_ok=True)
-    paths = [
-        plot_trajectories(trials, out / "trajectories.png"),
-        plot_profiles(trials, out / "profiles.png"),
-        plot_table1(table1(trials)["table1"], out / "table1.png"),
-    ]
-    if reference is not None:
-        paths.append(plot_behaviour(behaviour_samples(trials, "human"), behaviour_samples(reference, "human"),
-                                    out / "behaviour_vs_reference.png"))
-    return paths
 
 
 def _train_config(args):
@@ -139,17 +183,7 @@ def _train_config(args):
 
     from .model.train import FINE_TUNING, TrainConfig
 
-    for name in ("steps", "validate_every"):
-        value = getattr(args, name, None)
-        if value is not None and value < 1:
-            raise InputError(f"--{name.replace('_', '-')} must be a positive integer, got {value}")
-    if (getattr(args, "patience", None) or 0) < 0:
-        raise InputError(f"--patience must be 0 (off) or a positive integer, got {args.patience}")
-    if args.lr is not None and not 0 < args.lr < 1:
-        raise InputError(f"--lr must be a learning rate in (0, 1), got {args.lr}")
     fraction = getattr(args, "validation_fraction", 0.2)
-    if not 0 <= fraction < 1:
-        raise InputError(f"--validation-fraction must be in [0, 1), got {fraction}")
     if fraction == 0 and (getattr(args, "patience", None) or 0) > 0:
         raise InputError("--patience needs a validation set (expected --validation-fraction above 0)")
     tc = TrainConfig(steps=args.steps, seed=args.seed, validation_fraction=fraction)
@@ -161,8 +195,14 @@ def _train_config(args):
     return replace(tc, lr_final=min(tc.lr_final, tc.lr_initial), checkpoint_every=min(tc.checkpoint_every, tc.validate_every))
 
 
-def _log(args):
-    return (lambda line: print(line, file=sys.stderr)) if args.json else print
+def _model_spec(spec: str, what: str) -> str:
+    """Check a ``--model``-style value early (before long work): ``default``, ``authors:PATH`` or a
+    checkpoint file; the full validation happens when it is loaded."""
+    path = spec.removeprefix("authors:") if spec.startswith("authors:") else spec
+    if spec != "default" and not Path(path).is_file():
+        raise InputError(f"{what} {spec}: no such file (expected a checkpoint path, default, or authors:PATH "
+                         f"to the authors' weights.npz)")
+    return spec
 
 
 def cmd_train(args) -> None:
@@ -172,16 +212,18 @@ def cmd_train(args) -> None:
 
     if args.init and args.resume:
         raise InputError("--init and --resume exclude each other (expected one: fine-tune a model, or continue a run)")
+    out = check_output_file(args.out, "--out")
     tc = _train_config(args)
+    device = choose_device(args.device)
     trials = load_trials(args.data)
-    result = train(trials, args.out, args.variant, tc, resume=args.resume,
-                   device=choose_device(args.device), progress=not args.json, log=_log(args), init=args.init)
+    result = train(trials, out, args.variant, tc, resume=args.resume, device=device, progress=not args.json,
+                   log=_log(args), init=args.init)
     validation = result.validation or {"instances": 0, "nll_exact": None, "nll_is": None, "nll_naive": None}
     payload = {"variant": result.model.config.name, "steps": result.step, **validation,
                "best_step": result.best_step, "init": args.init,
-               "steps_per_second": round(result.steps_per_second, 2), "out": str(args.out)}
+               "steps_per_second": round(result.steps_per_second, 2), "out": str(out)}
     _emit(args, payload, f"trained {payload['variant']} for {result.step} steps "
-                         f"({result.steps_per_second:.1f} steps/s) -> {args.out}\n"
+                         f"({result.steps_per_second:.1f} steps/s) -> {out}\n"
                          f"validation ({validation['instances']} exemplars): "
                          f"NLL exact {_fmt(validation['nll_exact'])}, IS {_fmt(validation['nll_is'])}, "
                          f"naive {_fmt(validation['nll_naive'])} nats")
@@ -189,14 +231,18 @@ def cmd_train(args) -> None:
 
 def cmd_crossval(args) -> None:
     from .data.trials import load_trials
-    from .model.checkpoint import choose_device
+    from .model.checkpoint import choose_device, load_model
     from .model.crossval import crossval
 
+    out = check_output_folder(args.out, "--out") if args.out is not None else None
+    if args.reference is not None:
+        load_model(_model_spec(args.reference, "--reference"))  # a bad reference fails before the folds train
     tc = _train_config(args)
+    device = choose_device(args.device)
     trials = load_trials(args.data)
     result = crossval(trials, args.folds, tc, variant=args.variant, init=args.init, reference=args.reference,
-                      seed=args.seed, device=choose_device(args.device), progress=not args.json, log=_log(args),
-                      out=args.out, beat_reference=args.beat_reference)
+                      seed=args.seed, device=device, progress=not args.json, log=_log(args),
+                      out=out, beat_reference=args.beat_reference)
     summary = result.summary()
     payload = {**summary, "data": args.data, "init": args.init, "variant": args.variant, "out": args.out}
     ref = summary["reference"]
@@ -216,8 +262,8 @@ def cmd_calibrate(args) -> None:
     from .model.checkpoint import default_model_path, model_from_checkpoint, read_checkpoint, save_checkpoint
     from .model.crossval import out_of_fold_models
 
-    if args.samples < 2:
-        raise InputError(f"--samples must be at least 2, got {args.samples}")
+    out = check_output_file(args.out, "--out")
+    out_folds = check_output_folder(args.out_folds, "--out-folds") if args.out_folds is not None else None
     path = default_model_path() if args.model == "default" else Path(args.model)
     payload = read_checkpoint(path)  # a bad --model fails before the long grid
     trials = load_trials(args.data)
@@ -226,21 +272,16 @@ def cmd_calibrate(args) -> None:
     temperature, scale = summary["latent_temperature"], summary["output_scale"]
     model = model_from_checkpoint(payload, path).set_calibration(temperature, scale)
     kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict")}
-    save_checkpoint(args.out, model, **{**kept, "calibration": summary})
-    if args.out_folds:
-        Path(args.out_folds).mkdir(parents=True, exist_ok=True)
+    save_checkpoint(out, model, **{**kept, "calibration": summary})
+    if out_folds is not None:
         for k, (fold_model, held) in enumerate(out_of_fold_models(args.folds)):
-            save_checkpoint(Path(args.out_folds) / f"fold_{k + 1}.pt", fold_model.set_calibration(temperature, scale),
+            save_checkpoint(out_folds / f"fold_{k + 1}.pt", fold_model.set_calibration(temperature, scale),
                             held_out_trials=held, calibration=summary)
     cov = summary["coverage_90"]
-    _emit(args, {**summary, "model": str(args.model), "out": str(args.out)},
-          f"calibrated {args.model} -> {args.out}: latent temperature {temperature:g}, output scale {scale:g} "
+    _emit(args, {**summary, "model": str(args.model), "out": str(out)},
+          f"calibrated {args.model} -> {out}: latent temperature {temperature:g}, output scale {scale:g} "
           f"(out-of-fold NLL {summary['nll_exact']:.2f}, 90 % coverage at 1.5 s x {100 * cov['x']:.0f} %, "
           f"y {100 * cov['y']:.0f} %)")
-
-
-def _fmt(value) -> str:
-    return "n/a" if value is None else f"{value:.3f}"
 
 
 def cmd_evaluate(args) -> None:
@@ -249,28 +290,20 @@ def cmd_evaluate(args) -> None:
     from .model.exemplars import build_exemplars
     from .model.metrics import DIRECTIONS, PHASES, evaluate_instances
 
-    if args.samples < 1:
-        raise InputError(f"--samples must be a positive integer, got {args.samples}")
-    if args.coverage_samples < 2:
-        raise InputError(f"--coverage-samples must be at least 2, got {args.coverage_samples}")
-    if args.ade_samples < 1:
-        raise InputError(f"--ade-samples must be a positive integer, got {args.ade_samples}")
-    if args.max_sampled_instances is not None and args.max_sampled_instances < 0:
-        raise InputError(f"--max-sampled-instances must be 0 or more, got {args.max_sampled_instances}")
-    if args.per_instance is not None and Path(args.per_instance).is_dir():
-        raise InputError(f"--per-instance {args.per_instance}: is a folder (expected a .parquet file to write)")
+    per_instance = check_output_file(args.per_instance, "--per-instance") if args.per_instance is not None else None
     model = load_model(args.model, choose_device(args.device))
     trials = load_trials(args.data)
     exemplars = build_exemplars(trials)
     if len(exemplars) == 0:
-        raise InputError(f"{args.data}: no prediction instances (expected human agents in trials of at least 21 steps)")
+        raise InputError(f"{args.data}: no prediction instances (expected human agents in trials of at least "
+                         f"{MIN_TRIAL_STEPS} steps)")
     metrics = evaluate_instances(model, trials, exemplars, samples=args.coverage_samples, ade_samples=args.ade_samples,
                                  max_sampled=args.max_sampled_instances, nll_samples=args.samples, seed=args.seed)
     result = metrics.summary()
-    if args.per_instance is not None:
-        metrics.write_parquet(args.per_instance, {"model": args.model, "data": str(args.data), "seed": args.seed,
-                                                  "samples": args.samples, "coverage_samples": args.coverage_samples,
-                                                  "ade_samples": args.ade_samples})
+    if per_instance is not None:
+        metrics.write_parquet(per_instance, {"model": args.model, "data": str(args.data), "seed": args.seed,
+                                             "samples": args.samples, "coverage_samples": args.coverage_samples,
+                                             "ade_samples": args.ade_samples})
     payload = {**result, "model": args.model, "variant": model.config.name}
     pct = lambda v: "n/a" if v is None else f"{100 * v:.0f}"  # noqa: E731
     meters = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
@@ -279,8 +312,8 @@ def cmd_evaluate(args) -> None:
     coverage = "; ".join(f"{d} " + ", ".join(f"{h} s {pct(c['50'])}/{pct(c['90'])}" for h, c in result["coverage"][d].items())
                          for d in DIRECTIONS)
     _emit(args, payload, f"{args.model} ({model.config.name}) on {args.data}: {result['instances']} instances\n"
-                         f"NLL per instance (nats, 15×2 accelerations in m/s²): exact {result['nll_exact']:.3f}, "
-                         f"importance-sampled {_fmt(result['nll_is'])}, naive {result['nll_naive']:.3f}\n"
+                         f"NLL per instance (nats, 15×2 accelerations in m/s²): exact {_fmt(result['nll_exact'])}, "
+                         f"importance-sampled {_fmt(result['nll_is'])}, naive {_fmt(result['nll_naive'])}\n"
                          f"  exact by direction (15 accelerations): x {_fmt(result['nll_exact_by_direction']['x'])}, "
                          f"y {_fmt(result['nll_exact_by_direction']['y'])}\n"
                          f"  exact by lane-change phase: {phases}\n"
@@ -288,7 +321,7 @@ def cmd_evaluate(args) -> None:
                          f"  coverage of the 50/90 % central intervals (%): {coverage}\n"
                          f"  minADE {meters(result['min_ade_m'])} m, minFDE {meters(result['min_fde_m'])} m "
                          f"(best of {args.ade_samples})"
-                         + (f"\nper-instance values: {args.per_instance}" if args.per_instance is not None else ""))
+                         + (f"\nper-instance values: {per_instance}" if per_instance is not None else ""))
 
 
 def _parse_pick(text: str, trials) -> tuple[int, int, int]:
@@ -306,9 +339,9 @@ def _parse_pick(text: str, trials) -> tuple[int, int, int]:
     agent = parts[2] if len(parts) == 3 else (humans[0] if humans else 1)
     if agent not in (0, 1):
         raise InputError(f"--at {text!r}: agent must be 0 or 1")
-    last = int(trials.lengths[i]) - 16
-    if not 4 <= t <= last:
-        raise InputError(f"--at {text!r}: t must be within 4..{last} for trial {i} ({trials.lengths[i]} steps)")
+    first, last = MIN_HISTORY - 1, int(trials.lengths[i]) - HORIZON - 1
+    if not first <= t <= last:
+        raise InputError(f"--at {text!r}: t must be within {first}..{last} for trial {i} ({trials.lengths[i]} steps)")
     return i, agent, t
 
 
@@ -317,12 +350,12 @@ def cmd_predict(args) -> None:
     from .model.checkpoint import choose_device, load_model
     from .viz.model_figures import plot_predictions
 
-    if args.samples < 1:
-        raise InputError(f"--samples must be a positive integer, got {args.samples}")
+    out = check_output_file(args.out, "--out")
     trials = load_trials(args.data)
+    trials.require_dt()
     picks = [_parse_pick(text, trials) for text in args.at]
     model = load_model(args.model, choose_device(args.device))
-    path = plot_predictions(model, trials, picks, args.out, samples=args.samples, seed=args.seed,
+    path = plot_predictions(model, trials, picks, out, samples=args.samples, seed=args.seed,
                             title=f"{args.model} ({model.config.name}) on {Path(args.data).name}")
     _emit(args, {"out": str(path), "panels": len(picks)}, f"wrote {path}")
 
@@ -333,18 +366,17 @@ def cmd_bench(args) -> None:
     import torch
 
     from .model.checkpoint import choose_device, load_model
+    from .model.predictor import HumanPredictor
     from .planning.candidates import Action
     from .planning.costs import PaperCost
     from .planning.planner import Budget, Planner, example_history
     from .scenario import LANE_CENTRE_Y
 
-    if args.repeats < 1:
-        raise InputError(f"--repeats must be a positive integer, got {args.repeats}")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     device = choose_device(args.device)
-    planner = Planner(load_model(args.model, device), Budget(args.first_stage_samples, args.finalists, args.second_stage_samples),
-                      precision=args.precision)
+    human_model = HumanPredictor(load_model(args.model, device), precision=args.precision)
+    planner = Planner(human_model, Budget(args.first_stage_samples, args.finalists, args.second_stage_samples))
     history, first = example_history(), Action.of(0.0, "right").index
     cost = PaperCost(goal_y=LANE_CENTRE_Y["left"])
     planner.plan(history, first, cost, deadline=args.deadline)  # warm-up: allocations, measured speed
@@ -355,103 +387,17 @@ def cmd_bench(args) -> None:
                "first_stage_samples": plans[0].first_stage_samples, "finalists": len(plans[0].finalists),
                "second_stage_samples": plans[0].second_stage_samples, "deadline": args.deadline,
                "device": str(device), "threads": torch.get_num_threads(), "model": args.model,
-               "precision": str(planner.sampler.batched.matmul_dtype).removeprefix("torch."),
+               "precision": human_model.precision,
                "timings": {k: round(v, 4) for k, v in plans[-1].timings.items()}}
     _emit(args, payload, f"plan: {payload['futures']} human futures for {payload['candidates']} candidates in "
                          f"{payload['seconds']:.3f} s (median of {args.repeats}; {device}, {payload['threads']} threads)")
 
 
-def find_hitl_dir(explicit: str | None) -> Path | None:
-    """The folder of the authors' human-in-the-loop ``.jld`` files: ``explicit`` if given, else the
-    first of ``DEFAULT_HITL_DIRS`` that exists (relative to the working directory)."""
-    if explicit:
-        path = Path(explicit)
-        if not path.is_dir():
-            raise InputError(f"{path}: not a folder (expected the folder of the authors' .jld files)")
-        return path
-    return next((Path(d) for d in DEFAULT_HITL_DIRS if Path(d).is_dir()), None)
-
-
 def cmd_demo(args) -> None:
-    """The main job: a human–human dataset on the shipped driver model, its Table I, statistics and
-    figures, compared with the authors' real human drivers when their recordings are at hand."""
-    from .data.behaviour import behaviour_samples, compare_behaviour, format_comparison
-    from .data.generate import generate_trials
-    from .data.stats import table1
+    """The main job (:mod:`trafficweaving.demo`)."""
+    from .demo import run_demo
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    trials, report = generate_trials(args.trials, seed=args.seed, progress=True)
-    trials.write_parquet(out / "human_human.parquet")
-    print(f"generated {len(trials)} valid human–human trials in {time.perf_counter() - start:.1f} s "
-          f"({report.simulated} simulated, rejected {report.rejected}) -> {out / 'human_human.parquet'}")
-    t1 = table1(trials)
-    print(_table1_text(t1["table1"], t1["counts"]))
-
-    reference = None
-    hitl_dir = find_hitl_dir(args.hitl)
-    if hitl_dir is not None:
-        from .data.hitl import read_hitl
-
-        reference = read_hitl(sorted(hitl_dir.glob("*.jld")))
-        reference.write_parquet(out / "hitl.parquet")
-        comparison = compare_behaviour(behaviour_samples(trials, "human"), behaviour_samples(reference, "human"))
-        print(f"\nSimulated human drivers vs the {len(reference)} real human-in-the-loop trials in {hitl_dir}:")
-        print(format_comparison(comparison))
-    else:
-        print("\n(authors' human-in-the-loop recordings not found; pass --hitl DIR to compare with real drivers)")
-    for path in write_figures(trials, out / "figures", reference):
-        print(f"wrote {path}")
-    _demo_human_model(trials, reference, out / "figures")
-    _demo_planner(out / "figures")
-
-
-def _demo_planner(figures: Path) -> None:
-    """One full-budget plan with the shipped model, drawn beside braking and accelerating alternatives."""
-    from .model.checkpoint import load_model
-    from .planning.candidates import Action
-    from .planning.costs import PaperCost
-    from .planning.planner import Planner, example_history
-    from .scenario import LANE_CENTRE_Y
-    from .viz.planning_figures import plot_plan
-
-    planner = Planner(load_model("default"))
-    path = plot_plan(planner, example_history(), Action.of(0.0, "right").index, PaperCost(goal_y=LANE_CENTRE_Y["left"]),
-                     figures / "plan.png")
-    print(f"\nplanned against {planner.budget.futures} sampled human futures "
-          f"(4096 candidates × {planner.budget.first_stage_samples}, best {planner.budget.finalists} × "
-          f"{planner.budget.second_stage_samples}); wrote {path}")
-
-
-def _demo_human_model(trials, reference, figures: Path) -> None:
-    """The shipped human model on the real trials (when at hand) and its predictions as a figure."""
-    from .model.checkpoint import default_model_path, load_checkpoint
-    from .model.evaluate import evaluate
-    from .model.exemplars import build_exemplars
-    from .viz.model_figures import plot_predictions
-
-    model, payload = load_checkpoint(default_model_path())
-    if reference is not None:
-        result = evaluate(model, build_exemplars(reference)).summary()
-        print(f"\nShipped human model ({model.config.name}: {payload.get('summary', 'see docs/model.md')}) on the "
-              f"{len(reference)} real trials: {result['instances']} instances, NLL exact {result['nll_exact']:.3f}, "
-              f"IS {_fmt(result['nll_is'])}, naive {result['nll_naive']:.3f} nats (the authors' model: -12.717)")
-        cv = payload.get("crossval")
-        if cv:  # trained on these trials: the honest score is the cross-validated one
-            print(f"  in-sample: the model was fine-tuned on these trials; {len(cv['folds'])}-fold cross-validated by trial "
-                  f"it scores {cv['nll_exact']:.3f} (nested {cv['nested']['nll_exact']:.3f}; the authors' model "
-                  f"{cv['reference']['nll_exact']:.3f} on the same folds)")
-        calibration = payload.get("calibration")
-        if calibration:
-            cov = calibration["coverage_90"]
-            print(f"  calibrated out-of-fold (latent temperature {calibration['latent_temperature']:g}, output scale "
-                  f"{calibration['output_scale']:g}): NLL {calibration['nll_exact']:.3f}, 90 % position intervals 1.5 s "
-                  f"ahead cover {100 * cov['x']:.0f} % (x) and {100 * cov['y']:.0f} % (y) of real positions")
-        picks, data, name = DEMO_REAL_PICKS, reference, "predictions_real.png"
-    else:
-        picks, data, name = [(0, 0, 12), (1, 1, 20)], trials, "predictions_synthetic.png"
-    print(f"wrote {plot_predictions(model.to('cpu'), data, picks, figures / name, title='shipped human model: 50 sampled futures')}")
+    run_demo(check_output_folder(args.out, "--out"), trials=args.trials, seed=args.seed, hitl=args.hitl)
 
 
 # ---------------------------------------------------------------- parser
@@ -461,22 +407,24 @@ def _add_schedule_options(p, steps: int) -> None:
 
     p.add_argument("--variant", choices=tuple(VARIANTS), help="model variant (default cvae; with --init, the model's own)")
     p.add_argument("--init", metavar="MODEL", help="fine-tune this checkpoint (its own schedule: --lr, --steps, --patience)")
-    p.add_argument("--steps", type=int, default=steps, help=f"training steps (default {steps})")
-    p.add_argument("--lr", type=float, help="initial learning rate (default 1e-3, or 1e-4 with --init)")
-    p.add_argument("--validate-every", type=int, help="steps between validations (default 1000, or 50 with --init)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=POSITIVE, default=steps, help=f"training steps (default {steps})")
+    p.add_argument("--lr", type=_float_in(0, 1), help="initial learning rate in (0, 1) (default 1e-3, or 1e-4 with --init)")
+    p.add_argument("--validate-every", type=POSITIVE, help="steps between validations (default 1000, or 50 with --init)")
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda, cuda:N")
     p.add_argument("--json", action="store_true")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="trafficweaving", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    from .model.predictor import PRECISIONS
+
+    parser = _Parser(prog="trafficweaving", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("generate", help="generate synthetic human–human trials")
-    p.add_argument("--trials", type=int, default=1105, help="number of valid trials (default 1105, as the paper)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--pairs", type=int, default=19, help="pairs of simulated drivers (default 19, as the study)")
+    p.add_argument("--trials", type=POSITIVE, default=1105, help="number of valid trials (default 1105, as the paper)")
+    p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--pairs", type=POSITIVE, default=19, help="pairs of simulated drivers (default 19, as the study)")
     p.add_argument("--out", required=True, help="output Parquet file")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_generate)
@@ -505,16 +453,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="Parquet dataset (trials split 80/20 by trial)")
     p.add_argument("--out", required=True, help="output checkpoint (.pt), written every 1000 steps (50 when fine-tuning)")
     _add_schedule_options(p, steps=50_000)
-    p.add_argument("--patience", type=int, help="early stopping: validations without improvement before stopping "
-                                                "(default 0: off); the best weights are kept")
-    p.add_argument("--validation-fraction", type=float, default=0.2,
+    p.add_argument("--patience", type=NON_NEGATIVE, help="early stopping: validations without improvement before "
+                                                         "stopping (default 0: off); the best weights are kept")
+    p.add_argument("--validation-fraction", type=_float_in(0, 1, include_low=True), default=0.2,
                    help="fraction of the trials held out for validation, split by trial (0: train on all, no validation)")
     p.add_argument("--resume", help="continue the run saved in this training checkpoint")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("crossval", help="k-fold cross-validation by trial (choosing the number of steps by the folds)")
     p.add_argument("--data", required=True, help="Parquet dataset")
-    p.add_argument("--folds", type=int, default=5)
+    p.add_argument("--folds", type=_int_at_least(2), default=5)
     p.add_argument("--reference", help="a model scored on the same folds (checkpoint, default, or authors:PATH)")
     p.add_argument("--out", help="folder for each fold's model at the chosen steps (fold_K.pt, with its held-out trials)")
     p.add_argument("--beat-reference", action="store_true",
@@ -528,21 +476,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, help="the checkpoint to calibrate (or default), trained on every fold")
     p.add_argument("--out", required=True, help="the calibrated checkpoint")
     p.add_argument("--out-folds", help="also write the calibrated fold models here (for out-of-fold reports)")
-    p.add_argument("--samples", type=int, default=100, help="sampled futures per instance for the coverage")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--samples", type=_int_at_least(2), default=100, help="sampled futures per instance for the coverage")
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("evaluate", help="NLL, coverage and displacement errors of a human model on every human agent of a dataset")
     p.add_argument("--model", default="default", help="checkpoint path, default, or authors:PATH")
     p.add_argument("--data", required=True, help="Parquet dataset")
-    p.add_argument("--samples", type=int, default=50, help="latent samples of the sampled NLL estimators")
-    p.add_argument("--coverage-samples", type=int, default=100, help="sampled futures per instance for the position coverage")
-    p.add_argument("--ade-samples", type=int, default=20, help="sampled futures per instance for minADE/minFDE")
-    p.add_argument("--max-sampled-instances", type=int, default=5000,
+    p.add_argument("--samples", type=POSITIVE, default=50, help="latent samples of the sampled NLL estimators")
+    p.add_argument("--coverage-samples", type=_int_at_least(2), default=100,
+                   help="sampled futures per instance for the position coverage")
+    p.add_argument("--ade-samples", type=POSITIVE, default=20, help="sampled futures per instance for minADE/minFDE")
+    p.add_argument("--max-sampled-instances", type=NON_NEGATIVE, default=5000,
                    help="sample futures for at most this many instances (chosen at random with --seed; default 5000)")
     p.add_argument("--per-instance", metavar="FILE.parquet", help="also write every instance's values to this Parquet file")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--device", default="auto")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_evaluate)
@@ -552,8 +501,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="Parquet dataset")
     p.add_argument("--at", action="append", required=True, metavar="TRIAL:T[:AGENT]",
                    help="trial index and present step (repeat for more panels); agent defaults to the first human")
-    p.add_argument("--samples", type=int, default=50)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--samples", type=POSITIVE, default=50)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--device", default="auto")
     p.add_argument("--out", required=True, help="output PNG")
     p.add_argument("--json", action="store_true")
@@ -562,35 +511,62 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="time the planner")
     p.add_argument("what", choices=("plan",), help="plan: one two-stage plan at the paper's budget")
     p.add_argument("--model", default="default")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--deadline", type=float, help="real-time mode: return within this many seconds")
-    p.add_argument("--first-stage-samples", type=int, default=16)
-    p.add_argument("--finalists", type=int, default=32)
-    p.add_argument("--second-stage-samples", type=int, default=1024)
-    p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto",
+    p.add_argument("--repeats", type=POSITIVE, default=3)
+    p.add_argument("--deadline", type=_float_in(0, 3600), help="real-time mode: return within this many seconds")
+    p.add_argument("--first-stage-samples", type=POSITIVE, default=16)
+    p.add_argument("--finalists", type=POSITIVE, default=32)
+    p.add_argument("--second-stage-samples", type=POSITIVE, default=1024)
+    p.add_argument("--precision", choices=PRECISIONS, default="auto",
                    help="decoder matrix multiplies; auto: bfloat16 on CPUs with native bfloat16, else float32")
-    p.add_argument("--threads", type=int, help="CPU threads (default: PyTorch's choice)")
+    p.add_argument("--threads", type=_int_at_least(1, os.cpu_count() or 1),
+                   help=f"CPU threads, 1..{os.cpu_count() or 1} (default: PyTorch's choice)")
     p.add_argument("--device", default="auto")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("demo", help="the main job, end to end, on the shipped defaults")
     p.add_argument("--out", default="out", help="output folder (default: out)")
-    p.add_argument("--trials", type=int, default=1105)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--trials", type=POSITIVE, default=1105)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--hitl", help="folder of the authors' .jld recordings (default: ../shared/reference/hitl if present)")
     p.set_defaults(func=cmd_demo, json=False)
     return parser
 
 
+def _raise_terminated(signum, frame):
+    raise _Terminated
+
+
+def _die_by_signal(signum: int) -> None:
+    """Exit as killed by ``signum`` (the shell convention: status 128 + signum), after cleanup."""
+    sys.stdout.flush()
+    signal.signal(signum, signal.SIG_DFL)
+    os.kill(os.getpid(), signum)
+    sys.exit(128 + signum)  # if the signal could not end the process
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run one command. Bad input: one line on stderr and status 2. SIGTERM and Ctrl-C (SIGINT):
+    temporary files are removed, a one-line notice is printed, and the process ends by that
+    signal (status 143 and 130 in a shell)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a malformed option (2, one line printed)
+        return int(exc.code or 0)
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    where = f"trafficweaving {args.command}"
     try:
         args.func(args)
     except InputError as exc:
-        print(f"trafficweaving {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{where}: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # unwritable output path, full disk, ...
-        print(f"trafficweaving {args.command}: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
+        print(f"{where}: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
         return 2
+    except (KeyboardInterrupt, _Terminated) as exc:
+        signum = signal.SIGINT if isinstance(exc, KeyboardInterrupt) else signal.SIGTERM
+        print(f"\n{where}: interrupted ({signal.Signals(signum).name}); no partial output was left", file=sys.stderr)
+        _die_by_signal(signum)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return 0

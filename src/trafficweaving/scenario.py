@@ -1,7 +1,8 @@
 """The traffic-weaving scenario: road, cars, time step, the study's initial conditions and the
 validity rules of a trial.
 
-Every number that describes the scenario lives here (DESIGN.md §2); other modules import them.
+Every number that describes the scenario lives here (paper §II-C "Traffic Weaving Scenario" and
+§V-A "Data Collection"); other modules import them.
 Coordinates: ``x`` longitudinal in m (0 at the cutoff, negative before it), ``y`` lateral in m
 (0 at the left edge of the left lane, negative to the right).
 """
@@ -35,9 +36,12 @@ CAR_WIDTH = 1.76
 COLLISION_DX, COLLISION_DY = 4.5, 1.8
 """Two cars collide when ``|Δx| < COLLISION_DX`` and ``|Δy| < COLLISION_DY`` at the same step, m."""
 
+ROAD_END_X = 0.0
+"""The cutoff: where the two lanes end (the origin of ``x``), m."""
 CUTOFF_X = 2.0
-"""Both cars must have swapped lanes before reaching this ``x``; valid trials are cut at the step
-before the first car reaches it, m."""
+"""The validity line of the authors' sanitising, just past :data:`ROAD_END_X`: both cars must have
+swapped lanes before reaching this ``x``; valid trials are cut at the step before the first car
+reaches it, m."""
 RECORD_START_X = -100.0
 """Recordings start at the first step where both cars are behind this ``x`` (bag sanitising), m."""
 RECORD_END_X = 20.0
@@ -120,9 +124,10 @@ def check_validity(states: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray,
 
     ``states``: ``[n, 2, T, 6]`` (trial, car, step, ``STATE_NAMES``), steps past ``lengths`` ignored.
     ``lengths``: ``[n]`` recorded steps per trial. A recording must run until both cars reach
-    ``CUTOFF_X``. Rules (DESIGN.md §2): no collision at any recorded step; both cars on the road
-    up to the step where the first reaches ``CUTOFF_X``; each car, at its last step before
-    ``CUTOFF_X``, on the other side of ``SWAP_THRESHOLD_Y`` from its start.
+    ``CUTOFF_X``. Rules (the authors' sanitising of their recordings): no collision at any
+    recorded step; both cars on the road up to the step where the first reaches ``CUTOFF_X``;
+    each car, at its last step before ``CUTOFF_X``, on the other side of ``SWAP_THRESHOLD_Y``
+    from its start.
 
     Returns ``(reason, cut)``: ``reason[n]`` indexes ``VALIDITY_REASONS`` (0 = valid) and ``cut[n]``
     is the number of steps a valid trial keeps (the steps before the first car reaches

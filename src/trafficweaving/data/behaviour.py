@@ -83,6 +83,9 @@ def lane_change_events(trials: TrialSet, role: str = "human") -> LaneChanges:
     trial_idx, agent_idx = np.nonzero(trials.roles == role)
     s = trials.states[trial_idx, agent_idx]  # [m, T, 6]
     m, t_max = s.shape[:2]
+    if m == 0 or t_max == 0:  # no such agent, or no recorded step: no events
+        none = np.full(m, np.nan)
+        return LaneChanges(trial=trial_idx, agent=agent_idx, start=none, crossing=none.copy(), end=none.copy())
     steps = np.arange(t_max)
     recorded = steps[None, :] < trials.lengths[trial_idx][:, None]  # [m, T]
     y, yd = s[..., 1], s[..., 3]
@@ -162,13 +165,14 @@ def behaviour_samples(trials: TrialSet, role: str = "human") -> dict[str, np.nda
     events = lane_change_events(trials, role)
     rows = np.flatnonzero(np.isfinite(events.crossing))
     crossing, start, end = events.crossing[rows], events.start[rows], events.end[rows]
-    k = np.floor(crossing).astype(int)
+    k = np.maximum(np.ceil(crossing) - 1, 0).astype(int)  # crossing in (k, k + 1]: both steps recorded
     frac = crossing - k
     lane_change_x = x[rows, k] + frac * (x[rows, k + 1] - x[rows, k])
     before, after = (w / trials.dt for w in NEAR_CROSSING)
     window = ((steps[None, :] >= crossing[:, None] - before - 1e-9)
               & (steps[None, :] <= crossing[:, None] + after + 1e-9) & recorded[rows])
-    near = np.nansum(np.where(window, np.abs(xdd[rows]), 0.0), axis=1) / window.sum(axis=1)
+    in_window = window.sum(axis=1)  # 0 only for a time step above NEAR_CROSSING's window
+    near = (np.where(window, np.abs(xdd[rows]), 0.0).sum(axis=1) / np.maximum(in_window, 1))[in_window > 0]
     complete = np.isfinite(end)
 
     return {
@@ -188,13 +192,23 @@ def behaviour_samples(trials: TrialSet, role: str = "human") -> dict[str, np.nda
     }
 
 
+def _number(value) -> float | None:
+    """``value`` as a float, or None when it is NaN or infinite (JSON has no such numbers)."""
+    value = float(value)
+    return value if np.isfinite(value) else None
+
+
 def summarise(sample: np.ndarray) -> dict:
-    """Count, mean, std (ddof 0) and 5/50/95th percentiles of a 1-D sample; None when empty."""
+    """Count, mean, std (ddof 0) and 5/50/95th percentiles of a 1-D sample; each None where
+    undefined (an empty sample, or NaN/inf values in it), so the result is strict JSON."""
+    sample = np.asarray(sample, dtype=float)
     if sample.size == 0:
         return {"count": 0, **{key: None for key in SUMMARY_KEYS[1:]}}
-    p5, p50, p95 = np.percentile(sample, [5, 50, 95])
-    return {"count": int(sample.size), "mean": float(sample.mean()), "std": float(sample.std()),
-            "p5": float(p5), "p50": float(p50), "p95": float(p95)}
+    with np.errstate(invalid="ignore", over="ignore"):
+        p5, p50, p95 = np.percentile(sample, [5, 50, 95])
+        mean, std = sample.mean(), sample.std()
+    return {"count": int(sample.size), "mean": _number(mean), "std": _number(std),
+            "p5": _number(p5), "p50": _number(p50), "p95": _number(p95)}
 
 
 def compare_behaviour(sim: dict, real: dict) -> dict[str, dict]:
@@ -203,14 +217,15 @@ def compare_behaviour(sim: dict, real: dict) -> dict[str, dict]:
     Each entry: ``{"unit", "sim": summary, "real": summary, "wasserstein", "wasserstein_over_std"}``
     where a summary has ``count, mean, std, p5, p50, p95`` (the statistic's unit), ``wasserstein``
     is the 1-D Wasserstein distance of the two samples (same unit) and ``wasserstein_over_std`` that
-    divided by the real sample's std. Undefined numbers (an empty sample, a zero std) are None, so the
-    result is JSON-ready.
+    divided by the real sample's std. Undefined numbers (an empty sample, a zero std, NaN/inf in a
+    sample) are None, so the result is strict JSON.
     """
     table = {}
     for name in [n for n in sim if n in real]:
         a, b = np.asarray(sim[name], float), np.asarray(real[name], float)
-        w = float(wasserstein_distance(a, b)) if a.size and b.size else None
-        sd = float(b.std()) if b.size else 0.0
+        finite = a.size and b.size and np.isfinite(a).all() and np.isfinite(b).all()
+        w = _number(wasserstein_distance(a, b)) if finite else None
+        sd = float(b.std()) if finite else 0.0
         table[name] = {
             "unit": STATISTICS.get(name, ""),
             "sim": summarise(a),

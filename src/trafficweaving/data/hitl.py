@@ -2,7 +2,8 @@
 
 Each file is HDF5 holding datasets ``car1`` (the robot, driven by the authors' planner) and
 ``car2`` (the human), float32 ``[6, T, 1]``: rows ``x, y, xd, yd, xdd, ydd`` (m, m/s, m/s²), one
-column per ``DT`` step. Every recorded step is kept: no cutting, no validity filtering.
+column per ``DT`` step. Every recorded step is kept: no cutting, no validity filtering; but a
+file with a value outside :data:`.trials.PLAUSIBLE_RANGES` (no real car does that) is refused.
 """
 
 from __future__ import annotations
@@ -14,11 +15,12 @@ import numpy as np
 
 from ..errors import InputError
 from ..scenario import DELTA_V_VALUES, DT, MIN_TRIAL_STEPS, STATE_NAMES, lane_of
-from .trials import TrialSet
+from .trials import TrialSet, first_implausible, implausible_text
 
 CARS = ("car1", "car2")
 """Dataset names, in agent order (agent 0 = robot, agent 1 = human)."""
-ROLES = ("robot", "human")
+AGENT_ROLES = ("robot", "human")
+"""Role of agent 0 (``car1``) and agent 1 (``car2``) in these files (labels from :data:`.trials.ROLES`)."""
 EXPECTED = "a Julia JLD (HDF5) file with datasets car1 and car2 of shape [6, T, 1]"
 
 
@@ -31,8 +33,10 @@ def read_hitl(paths: list[str | Path]) -> TrialSet:
     (``DELTA_V_VALUES``) is snapped to it.
 
     Raises :class:`InputError` (one line naming the file) on a missing file, a file that is not
-    HDF5, a missing or malformed ``car1``/``car2``, cars of different lengths, NaN/inf values, or
-    fewer than ``MIN_TRIAL_STEPS`` steps.
+    HDF5, a missing or malformed ``car1``/``car2``, cars of different lengths, NaN/inf values, a
+    value outside :data:`.trials.PLAUSIBLE_RANGES` (message: the car, the quantity, the value and
+    the plausible range), or fewer than ``MIN_TRIAL_STEPS`` steps. ``source_path`` is the file when
+    one is given, else their common folder (None if they lie in several).
     """
     if not paths:
         raise InputError(f"no files given (expected one or more .jld files: {EXPECTED})")
@@ -59,7 +63,7 @@ def read_hitl(paths: list[str | Path]) -> TrialSet:
         states=states,
         lengths=lengths,
         trial_ids=np.arange(n, dtype=np.int32),
-        roles=np.tile(np.array(ROLES), (n, 1)),
+        roles=np.tile(np.array(AGENT_ROLES), (n, 1)),
         start_lanes=lane_of(y0),
         drivers=np.full((n, 2), -1, dtype=np.int32),
         ic_dv=ic_dv,
@@ -67,7 +71,16 @@ def read_hitl(paths: list[str | Path]) -> TrialSet:
         sources=np.array([Path(p).name for p in paths]),
         dt=DT,
         metadata={"importer": "hitl"},
+        source_path=_common_source([Path(p) for p in paths]),
     )
+
+
+def _common_source(paths: list[Path]) -> Path | None:
+    """The one file read, or the folder all files lie in; None when they are spread out."""
+    if len(paths) == 1:
+        return paths[0]
+    folders = {p.parent for p in paths}
+    return folders.pop() if len(folders) == 1 else None
 
 
 def _read_file(path: Path) -> np.ndarray:
@@ -103,4 +116,10 @@ def _read_car(f: h5py.File, name: str, path: Path) -> np.ndarray:
     if bad.any():
         step, row = np.argwhere(bad)[0]
         raise InputError(f"{path}: dataset {name} has a NaN or infinite {STATE_NAMES[row]} at step {step} (expected finite numbers)")
+    implausible = first_implausible(states)
+    if implausible is not None:
+        (step,), quantity, value = implausible
+        role = AGENT_ROLES[CARS.index(name)]
+        text = implausible_text(quantity, value, where=f" at step {step}")
+        raise InputError(f"{path}: {name} ({role}) has {text}")
     return states

@@ -8,13 +8,15 @@ the message definitions stored in the bag (no ROS install needed).
 Pipeline per bag (the authors' ``extract_from_and_validate_bag`` and
 ``sanitize_traffic_weaving_dataframe``):
 
-1. both topics present, all values finite; no gap above ``DT`` between consecutive ``simTime``
-   stamps of a topic;
+1. the bag readable (a file that is not a ROS1 bag, truncated or corrupt, is rejected as
+   ``unreadable``; the other bags still import); both topics present, all values finite; no gap
+   above ``DT`` between consecutive ``simTime`` stamps of a topic;
 2. every field linearly interpolated onto ``t0, t0 + DT, ... < tf`` (``t0``: the later first stamp,
    ``tf``: the earlier last stamp);
 3. time consistency: positions and speeds must agree with integrated speeds and accelerations;
 4. kept from the first step where both cars are behind ``RECORD_START_X`` to before the first step
-   where both are past ``RECORD_END_X``;
+   where both are past ``RECORD_END_X``; every kept value within :data:`.trials.PLAUSIBLE_RANGES`
+   (the limits the human-in-the-loop importer applies too);
 5. :func:`scenario.check_validity`, then cut before the first car reaches ``CUTOFF_X``.
 
 Each rejected bag is counted under a reason in :data:`REJECT_REASONS`.
@@ -28,8 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from rosbags.highlevel import AnyReader, AnyReaderError
-from rosbags.rosbag1 import ReaderError
+from rosbags.highlevel import AnyReader
 from tqdm import tqdm
 
 from ..errors import InputError
@@ -44,7 +45,7 @@ from ..scenario import (
     check_validity,
     lane_of,
 )
-from .trials import TrialSet
+from .trials import TrialSet, first_implausible
 
 TOPICS = ("/object_state/1", "/object_state/2")
 """Topic of each agent (car 1, car 2)."""
@@ -61,12 +62,15 @@ REJECT_REASONS = (
     "too_short",
     "inconsistent",
     "start_not_recorded",
+    "implausible",
     *VALIDITY_REASONS[1:],
 )
-"""Why a bag can be rejected, in pipeline order. ``missing_topic``: a topic with fewer than 2
+"""Why a bag can be rejected, in pipeline order. ``unreadable``: not a ROS1 bag (random bytes,
+empty, truncated, corrupt) or messages of another type; ``missing_topic``: a topic with fewer than 2
 messages; ``too_short``: a ``DT`` grid, or a valid trial once cut, of fewer than
 ``MIN_TRIAL_STEPS`` steps; ``start_not_recorded``: no step with both cars behind
-``RECORD_START_X``; then the :data:`scenario.VALIDITY_REASONS`."""
+``RECORD_START_X``; ``implausible``: a kept value outside :data:`.trials.PLAUSIBLE_RANGES`; then
+the :data:`scenario.VALIDITY_REASONS`."""
 
 
 @dataclass
@@ -96,8 +100,9 @@ def read_rosbags(directory: str | Path) -> RosbagImport:
     (NaN when ``ic_dv`` is 0). Drivers ``2p`` and ``2p + 1`` come from a numeric folder name ``p``
     (-1 otherwise).
 
+    A bag that cannot be read or is not a valid trial is counted under its reason and skipped.
     Raises :class:`InputError` when ``directory`` is not a directory, holds no bags, or none of its
-    bags is a valid trial.
+    bags is a valid trial. The result's ``trials.source_path`` is ``directory``.
     """
     root = Path(directory)
     if not root.is_dir():
@@ -124,7 +129,9 @@ def read_rosbags(directory: str | Path) -> RosbagImport:
     if not accepted:
         summary = ", ".join(f"{reason} {count}" for reason, count in rejected.items())
         raise InputError(f"{root}: no valid trials among {len(paths)} bags (rejected: {summary})")
-    return RosbagImport(trials=_trial_set(accepted), rejected=rejected, files=files)
+    trials = _trial_set(accepted)
+    trials.source_path = root
+    return RosbagImport(trials=trials, rejected=rejected, files=files)
 
 
 def sanitise(states: np.ndarray) -> np.ndarray:
@@ -138,6 +145,8 @@ def sanitise(states: np.ndarray) -> np.ndarray:
     ended = (states[:, :, 0] > RECORD_END_X).all(axis=0)
     if ended.any():
         states = states[:, : int(np.argmax(ended))]
+    if first_implausible(states) is not None:
+        raise BagRejected("implausible")
     reason, cut = check_validity(states[None], np.array([states.shape[1]]))
     if reason[0]:
         raise BagRejected(VALIDITY_REASONS[reason[0]])
@@ -167,7 +176,7 @@ def _read_bag(path: Path) -> np.ndarray:
                 columns[connection.topic].append(
                     (m.simTime, m.base.pos.x, m.base.pos.y, m.ext.speed.x, m.ext.speed.y, m.ext.accel.x, m.ext.accel.y)
                 )
-    except (AnyReaderError, ReaderError, AttributeError, OSError):
+    except Exception:  # noqa: BLE001 - a corrupt bag makes the reader fail in any way (UnicodeDecodeError, struct.error, ...)
         raise BagRejected("unreadable") from None
     if any(len(rows) < 2 for rows in columns.values()):
         raise BagRejected("missing_topic")
@@ -188,8 +197,10 @@ def _read_bag(path: Path) -> np.ndarray:
     )  # [2, T, 6]
 
     x, xd, xdd = states[:, :, 0], states[:, :, 2], states[:, :, 4]
-    drift = np.concatenate([x - DT * np.cumsum(xd, axis=1), xd - DT * np.cumsum(xdd, axis=1)])  # [4, T]
-    if not (drift.std(axis=1, ddof=1) < CONSISTENCY_LIMIT).all():  # ddof=1: pandas' std, as the authors
+    with np.errstate(over="ignore", invalid="ignore"):  # absurd values give inf/NaN: inconsistent
+        drift = np.concatenate([x - DT * np.cumsum(xd, axis=1), xd - DT * np.cumsum(xdd, axis=1)])  # [4, T]
+        spread = drift.std(axis=1, ddof=1)  # ddof=1: pandas' std, as the authors
+    if not (spread < CONSISTENCY_LIMIT).all():
         raise BagRejected("inconsistent")
     return states
 

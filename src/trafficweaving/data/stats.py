@@ -1,7 +1,9 @@
-"""Dataset statistics: who passed whom, the paper's Table I, and marginal driving behaviour.
+"""Dataset statistics: who passed whom and the paper's Table I.
 
-Table I (DESIGN.md §2) is the fraction of trials in which the car that started in the **left**
-lane passes in front, per initial condition ``(Δv = v_left - v_right, tco)``.
+Table I (Schmerling et al., ICRA 2018, §V-A "Data Collection") is the fraction of human–human
+trials in which the car that started in the **left** lane passes in front, per initial condition
+``(Δv = v_left - v_right, tco)``. Every number returned is finite or None (JSON null) where it is
+undefined, so results serialise as strict JSON.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ def swap_step(trials: TrialSet) -> np.ndarray:
     across = (SWAP_THRESHOLD_Y - y[:, :, :1]) * (SWAP_THRESHOLD_Y - y) < 0
     both = across.all(axis=1)  # [n, T]
     both &= np.arange(y.shape[2])[None, :] < trials.lengths[:, None]
+    if both.size == 0:  # no trials (or no steps): nothing to find
+        return np.zeros(len(trials), dtype=int)
     return np.where(both.any(axis=1), both.argmax(axis=1), trials.lengths - 1)
 
 
@@ -59,12 +63,28 @@ def table1(trials: TrialSet) -> dict:
     return {"table1": fractions, "counts": counts}
 
 
-def table1_max_deviation(table: dict, reference: dict = TABLE1_PAPER) -> float:
-    """Largest absolute difference (fraction, not pp) between two Table I dicts over filled cells."""
+def table1_max_deviation(table: dict, reference: dict = TABLE1_PAPER) -> float | None:
+    """Largest absolute difference (fraction, not pp) between two Table I dicts over the cells
+    filled in both; None when no cell is."""
     diffs = [
         abs(table[dv][k] - reference[dv][k])
         for dv in reference
         for k in reference[dv]
-        if table.get(dv, {}).get(k) is not None
+        if table.get(dv, {}).get(k) is not None and reference[dv][k] is not None
     ]
-    return max(diffs) if diffs else float("nan")
+    return max(diffs) if diffs else None
+
+
+def format_table1(table: dict, counts: dict) -> str:
+    """Table I as text, each cell beside the paper's value and its trial count."""
+    def cell(dv, k):
+        value = table[dv][k]
+        ours = "   -  " if value is None else f"{100 * value:5.1f}%"
+        return f"{ours} (paper {100 * TABLE1_PAPER[dv][k]:4.1f}%, n={counts[dv][k]})"
+
+    lines = ["Table I: fraction of trials where the car starting in the left lane passes in front",
+             f"{'tco':>5} | {'Δv = -2 m/s':^30} | {'Δv = +2 m/s':^30}"]
+    for k in ("1", "2", "3"):
+        lines.append(f"{k + ' s':>5} | {cell('-2', k):^30} | {cell('2', k):^30}")
+    lines.append(f"Δv = 0 (all tco): {cell('0', 'all')}")
+    return "\n".join(lines)

@@ -8,7 +8,7 @@ column        type      meaning
 ============  ========  ==========================================================================
 trial         int32     trial id, unique in the file
 agent         int8      0 or 1, the car within the trial
-step          int32     0, 1, ... T-1 (consecutive)
+step          int32     0, 1, ... T-1 (consecutive integers)
 t             float64   time since the trial's first step, s (``step * DT``)
 role          string    ``human`` or ``robot``
 start_lane    string    ``left`` or ``right``: the lane the agent started in
@@ -22,15 +22,21 @@ xdd, ydd      float64   acceleration, m/s²
 ============  ========  ==========================================================================
 
 The file's schema metadata key ``trafficweaving`` holds a JSON object with ``format_version``,
-``dt`` and free-form provenance (e.g. the generator's seed and parameters).
+``dt`` (the time step, s; required, a positive finite number) and free-form provenance (e.g. the
+generator's seed and parameters). Integer columns may also be stored as floats holding whole
+numbers; every value must fit the type above.
 
 In memory a :class:`TrialSet` holds padded arrays ready for learning: ``states[n, 2, T_max, 6]``
 (NaN past each trial's length) and ``lengths[n]``.
+
+:data:`PLAUSIBLE_RANGES` is the one statement of which state values a real car can have; both
+importers (:mod:`.hitl`, :mod:`.rosbag`) refuse recordings outside it.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,12 +47,13 @@ import pyarrow.parquet as pq
 
 from ..atomic import atomic_write
 from ..errors import InputError
-from ..scenario import DT, MIN_TRIAL_STEPS, STATE_NAMES
+from ..scenario import DT, LANES, MIN_TRIAL_STEPS, ROAD_Y_MAX, ROAD_Y_MIN, STATE_NAMES
 
 FORMAT_VERSION = 1
 ROLES = ("human", "robot")
-LANES = ("left", "right")
+"""The valid role labels of an agent: a person driving, or the robot car driven by the planner."""
 METADATA_KEY = b"trafficweaving"
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 
 SCHEMA = pa.schema(
     [
@@ -63,6 +70,53 @@ SCHEMA = pa.schema(
         *[(name, pa.float64()) for name in STATE_NAMES],
     ]
 )
+NULLABLE = ("ic_dv", "ic_tco")
+"""The only columns that may hold nulls (an unknown initial condition)."""
+
+STATE_UNITS = {"x": "m", "y": "m", "xd": "m/s", "yd": "m/s", "xdd": "m/s²", "ydd": "m/s²"}
+"""Unit of each of ``STATE_NAMES``."""
+
+PLAUSIBLE_RANGES: dict[str, tuple[float, float]] = {
+    "x": (-500.0, 500.0),
+    "y": (ROAD_Y_MIN - 10.0, ROAD_Y_MAX + 10.0),
+    "xd": (-5.0, 80.0),
+    "yd": (-15.0, 15.0),
+    "xdd": (-30.0, 30.0),
+    "ydd": (-30.0, 30.0),
+}
+"""Closed interval of every state component a recorded car can plausibly have, in the units of
+:data:`STATE_UNITS`; the importers refuse recordings with a value outside it (or non-finite).
+
+Chosen from physics and the scenario, with wide margins over the authors' 30 human-in-the-loop
+recordings (x −142…+40 m, y −8.2…−1.5 m, xd 20.7…42.8 m/s, |yd| ≤ 4.1 m/s, |xdd|, |ydd| ≤ 8.4 m/s²):
+``x`` within 500 m of the cutoff (cars start near ``START_X`` ≈ −150 m and recordings stop a few
+tens of metres past the cutoff); ``y`` within 10 m (more than two lane widths) of the road
+``ROAD_Y_MIN..ROAD_Y_MAX``; forward speed from a slight roll back (−5 m/s) to 80 m/s (288 km/h,
+above any car the study's drivers could reach, about 2.8 × the start speed ``BASE_SPEED``);
+lateral speed within ±15 m/s; accelerations within ±30 m/s² (about 3 g; tyres give about 1 g).
+"""
+
+
+def first_implausible(states: np.ndarray) -> tuple[tuple[int, ...], str, float] | None:
+    """The first value of ``states[..., 6]`` (last axis ``STATE_NAMES``) outside
+    :data:`PLAUSIBLE_RANGES` or non-finite, as ``(index of its state row, component name, value)``
+    in C order; None when every value is plausible."""
+    states = np.asarray(states, dtype=float)
+    low = np.array([PLAUSIBLE_RANGES[name][0] for name in STATE_NAMES])
+    high = np.array([PLAUSIBLE_RANGES[name][1] for name in STATE_NAMES])
+    bad = ~((states >= low) & (states <= high))  # NaN compares False: bad
+    if not bad.any():
+        return None
+    *row, k = np.unravel_index(int(np.argmax(bad)), bad.shape)
+    return tuple(int(i) for i in row), STATE_NAMES[k], float(states[(*row, k)])
+
+
+def implausible_text(name: str, value: float, where: str = "") -> str:
+    """``"<name> = <value> <unit><where> (plausible: <low> to <high> <unit>)"`` for messages;
+    ``where`` e.g. ``" at step 4"``."""
+    low, high = PLAUSIBLE_RANGES[name]
+    unit = STATE_UNITS[name]
+    return f"{name} = {value:.6g} {unit}{where} (plausible: {low:g} to {high:g} {unit})"
 
 
 @dataclass
@@ -72,7 +126,9 @@ class TrialSet:
     ``states``: ``[n, 2, T_max, 6]`` float64 (trial, agent, step, ``STATE_NAMES``), NaN past a
     trial's length. ``lengths``: ``[n]`` steps per trial. Per-trial ``trial_ids[n]``, ``ic_dv[n]``
     (m/s, NaN unknown), ``ic_tco[n]`` (s, NaN for Δv = 0 or unknown), ``sources[n]``; per-agent
-    ``roles[n, 2]``, ``start_lanes[n, 2]``, ``drivers[n, 2]`` (-1 unknown).
+    ``roles[n, 2]``, ``start_lanes[n, 2]``, ``drivers[n, 2]`` (-1 unknown). ``dt``: time step, s.
+    ``source_path``: the file (or folder) the set was read from, for messages; None when built in
+    memory. It is not stored in the Parquet file.
     """
 
     states: np.ndarray
@@ -86,6 +142,7 @@ class TrialSet:
     sources: np.ndarray
     dt: float = DT
     metadata: dict = field(default_factory=dict)
+    source_path: Path | None = None
 
     def __len__(self) -> int:
         return len(self.lengths)
@@ -93,6 +150,16 @@ class TrialSet:
     def trajectory(self, i: int, agent: int) -> np.ndarray:
         """The recorded states of one agent, ``[lengths[i], 6]``."""
         return self.states[i, agent, : self.lengths[i]]
+
+    def require_dt(self, expected: float = DT, purpose: str = "the human model") -> None:
+        """Raise :class:`InputError` unless this set's time step is ``expected`` (s) — the step
+        ``purpose`` (a model, the planner) works at; data at another step would be misread there.
+        The one-line message names :attr:`source_path` when known."""
+        dt = float(self.dt)
+        if math.isfinite(dt) and abs(dt - expected) <= 1e-9 * abs(expected):
+            return
+        where = str(self.source_path) if self.source_path is not None else "the trial set"
+        raise InputError(f"{where}: time step {dt:g} s (expected {expected:g} s, the time step of {purpose})")
 
     def subset(self, index) -> "TrialSet":
         """The trials selected by ``index`` (boolean mask or integer indices), arrays trimmed to
@@ -111,11 +178,13 @@ class TrialSet:
             sources=self.sources[index],
             dt=self.dt,
             metadata=dict(self.metadata),
+            source_path=self.source_path,
         )
 
     @staticmethod
     def concatenate(sets: list["TrialSet"]) -> "TrialSet":
-        """Join trial sets (same ``dt``), renumbering trial ids 0..n-1."""
+        """Join trial sets (same ``dt``), renumbering trial ids 0..n-1; ``source_path`` is kept
+        only when all sets share it."""
         if not sets:
             raise ValueError("no trial sets to concatenate")
         t_max = max(s.states.shape[2] for s in sets)
@@ -124,6 +193,7 @@ class TrialSet:
              for s in sets]
         )
         cat = lambda name: np.concatenate([getattr(s, name) for s in sets])  # noqa: E731
+        paths = {s.source_path for s in sets}
         return TrialSet(
             states=states,
             lengths=cat("lengths"),
@@ -136,11 +206,20 @@ class TrialSet:
             sources=cat("sources"),
             dt=sets[0].dt,
             metadata=dict(sets[0].metadata),
+            source_path=paths.pop() if len(paths) == 1 else None,
         )
 
     # ------------------------------------------------------------------ storage
     def to_table(self) -> pa.Table:
-        """The long (one row per agent per step) Arrow table of this set."""
+        """The long (one row per agent per step) Arrow table of this set; ``format_version`` and
+        ``dt`` in the schema metadata take precedence over keys of the same name in ``metadata``.
+
+        Raises ValueError when a trial id or driver id does not fit the file's int32 columns."""
+        for what, values in (("trial id", self.trial_ids), ("driver id", self.drivers)):
+            values = np.asarray(values)
+            if values.size and (values.min() < INT32_MIN or values.max() > INT32_MAX):
+                raise ValueError(f"{what} {values.min() if values.min() < INT32_MIN else values.max()} "
+                                 f"does not fit the file's int32 column")
         n = len(self)
         counts = np.repeat(self.lengths, 2)  # rows per (trial, agent)
         trial_of_row = np.repeat(np.repeat(np.arange(n), 2), counts)
@@ -161,72 +240,165 @@ class TrialSet:
         }
         for k, name in enumerate(STATE_NAMES):
             columns[name] = state_rows[:, k]
-        meta = {"format_version": FORMAT_VERSION, "dt": self.dt, **self.metadata}
+        meta = {**self.metadata, "format_version": FORMAT_VERSION, "dt": float(self.dt)}
         table = pa.table(columns, schema=SCHEMA)
         return table.replace_schema_metadata({METADATA_KEY: json.dumps(meta).encode()})
 
     def write_parquet(self, path: str | os.PathLike) -> None:
-        """Write the set to ``path`` atomically (temporary file in the same folder, then rename)."""
+        """Write the set to ``path`` atomically (temporary file in the same folder, then rename).
+        ``source_path`` is not stored; :func:`load_trials` sets it to the path read."""
+        table = self.to_table()
         with atomic_write(path) as f:
-            pq.write_table(self.to_table(), f, compression="zstd")
+            pq.write_table(table, f, compression="zstd")
 
 
 def load_trials(path: str | os.PathLike) -> TrialSet:
-    """Read and validate a Parquet dataset written by :meth:`TrialSet.write_parquet`.
+    """Read and validate a Parquet dataset written by :meth:`TrialSet.write_parquet`; the result's
+    ``source_path`` is ``path``.
 
     Raises :class:`InputError` with a one-line message naming the file on a missing file, a file
-    that is not Parquet, missing columns, NaN/inf states, unknown roles or lanes, steps that are not
-    consecutive, a time step other than the file's ``dt``, a trial without exactly two agents of
-    equal length, or a trial shorter than ``MIN_TRIAL_STEPS``.
+    that is not Parquet, a missing, duplicated or wrongly typed column, nulls outside ``ic_dv`` and
+    ``ic_tco``, integers that are fractional or outside their type, missing or malformed metadata
+    (``format_version``, ``dt``), NaN/inf states, unknown roles or lanes, per-trial or per-agent
+    values that change within a trial, steps that are not ``0..T-1``, a time column off the grid of
+    the file's ``dt``, a trial without exactly two agents of equal length, or a trial shorter than
+    ``MIN_TRIAL_STEPS``.
     """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such file (expected a trafficweaving Parquet dataset)")
     try:
-        table = pq.read_table(path)
-    except (pa.ArrowInvalid, OSError) as exc:
-        raise InputError(f"{path}: not a readable Parquet file ({str(exc).splitlines()[0]})") from None
-    return trials_from_table(table, str(path))
+        with pq.ParquetFile(path) as parquet:  # a plain file reader: keeps duplicated column names for the check
+            table = parquet.read()
+    except (pa.ArrowException, OSError) as exc:
+        reason = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise InputError(f"{path}: not a readable Parquet file ({reason})") from None
+    trials = trials_from_table(table, str(path))
+    trials.source_path = path
+    return trials
+
+
+def _metadata(table: pa.Table, name: str) -> tuple[dict, float]:
+    """The provenance dict and the time step (s) of the table's schema metadata, validated."""
+    key = METADATA_KEY.decode()
+    raw = (table.schema.metadata or {}).get(METADATA_KEY)
+    expected = f"expected a JSON object with format_version {FORMAT_VERSION} and dt, as TrialSet.write_parquet writes"
+    if raw is None:
+        raise InputError(f"{name}: no '{key}' schema metadata ({expected})")
+    try:
+        meta = json.loads(raw)
+    except (ValueError, RecursionError):
+        raise InputError(f"{name}: schema metadata '{key}' is not valid JSON ({expected})") from None
+    if not isinstance(meta, dict):
+        raise InputError(f"{name}: schema metadata '{key}' is a JSON {type(meta).__name__}, not an object ({expected})")
+    version = meta.pop("format_version", None)
+    if type(version) is not int or version != FORMAT_VERSION:
+        raise InputError(f"{name}: format_version {_short(version)} in the metadata (expected {FORMAT_VERSION})")
+    if "dt" not in meta:
+        raise InputError(f"{name}: the metadata has no time step 'dt' (expected dt in seconds, e.g. {DT})")
+    dt = meta.pop("dt")
+    try:
+        ok = type(dt) in (int, float) and math.isfinite(dt) and float(dt) > 0
+    except OverflowError:
+        ok = False
+    if not ok:
+        raise InputError(f"{name}: time step dt = {_short(dt)} in the metadata (expected a positive finite number of seconds, e.g. {DT})")
+    return meta, float(dt)
+
+
+def _short(value) -> str:
+    """``repr`` of a metadata value for a one-line message, at most 40 characters."""
+    text = " ".join(repr(value).split())
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _check_columns(table: pa.Table, name: str) -> None:
+    """Every schema column present once, of a usable type, without nulls outside ``NULLABLE``."""
+    names = table.column_names
+    missing = [f.name for f in SCHEMA if f.name not in names]
+    if missing:
+        raise InputError(f"{name}: missing column(s) {', '.join(missing)} (expected {', '.join(SCHEMA.names)})")
+    repeated = [c for c in SCHEMA.names if names.count(c) > 1]
+    if repeated:
+        raise InputError(f"{name}: column {repeated[0]} appears {names.count(repeated[0])} times (expected once)")
+    for spec in SCHEMA:
+        typ = table.schema.field(spec.name).type
+        if pa.types.is_string(spec.type):
+            usable = _is_text(typ) or (pa.types.is_dictionary(typ) and _is_text(typ.value_type))
+        else:  # numbers; integer columns may hold whole floats (checked on reading)
+            usable = pa.types.is_integer(typ) or pa.types.is_floating(typ)
+        if not usable:
+            raise InputError(f"{name}: column {spec.name} has type {typ} (expected {spec.type}; see the data format in the README)")
+        nulls = table.column(spec.name).null_count
+        if nulls and spec.name not in NULLABLE:
+            raise InputError(f"{name}: column {spec.name} has {nulls} null value(s) (expected none; only {' and '.join(NULLABLE)} may be null)")
+
+
+def _is_text(typ: pa.DataType) -> bool:
+    return pa.types.is_string(typ) or pa.types.is_large_string(typ) or pa.types.is_string_view(typ)
+
+
+def _integers(table: pa.Table, column: str, name: str, low: int, high: int) -> np.ndarray:
+    """Column ``column`` as int64, refusing fractional or non-finite floats and values outside
+    ``low..high`` (the range of the column's documented type)."""
+    data = table.column(column)
+    values = data.to_numpy()
+    if pa.types.is_floating(data.type):
+        bad = ~np.isfinite(values) | (values != np.round(values))
+        if bad.any():
+            r = int(np.argmax(bad))
+            raise InputError(f"{name}: column {column} has the non-integer value {float(values[r]):.10g} at row {r} (expected {SCHEMA.field(column).type} integers)")
+    out_of_range = (values < low) | (values > high)
+    if out_of_range.any():
+        r = int(np.argmax(out_of_range))
+        value = int(values[r])
+        raise InputError(f"{name}: column {column} has the value {value} at row {r}, outside {low}..{high} "
+                         f"(expected {SCHEMA.field(column).type})")
+    return values.astype(np.int64)
+
+
+def _floats(table: pa.Table, column: str) -> np.ndarray:
+    """Column ``column`` as float64 (nulls as NaN)."""
+    return np.asarray(table.column(column).to_numpy(zero_copy_only=False), dtype=float)
+
+
+def _texts(table: pa.Table, column: str) -> np.ndarray:
+    """Column ``column`` as a numpy string array."""
+    data = table.column(column)
+    if pa.types.is_dictionary(data.type):
+        data = data.cast(data.type.value_type)
+    return np.asarray(data.to_numpy(zero_copy_only=False), dtype=object).astype(str)
 
 
 def trials_from_table(table: pa.Table, name: str) -> TrialSet:
     """Validate a long table (see module docstring) and pack it into a :class:`TrialSet`;
-    ``name`` is used in error messages."""
-    missing = [f.name for f in SCHEMA if f.name not in table.column_names]
-    if missing:
-        raise InputError(f"{name}: missing column(s) {', '.join(missing)} (expected {', '.join(SCHEMA.names)})")
-    raw_meta = (table.schema.metadata or {}).get(METADATA_KEY)
-    try:
-        meta = json.loads(raw_meta) if raw_meta else {}
-    except json.JSONDecodeError:
-        raise InputError(f"{name}: schema metadata '{METADATA_KEY.decode()}' is not valid JSON") from None
-    dt = float(meta.pop("dt", DT))
-    meta.pop("format_version", None)
+    ``name`` (the file) starts every error message."""
+    _check_columns(table, name)
+    meta, dt = _metadata(table, name)
     if table.num_rows == 0:
         raise InputError(f"{name}: the dataset has no rows (expected at least one trial)")
 
-    col = lambda c: table.column(c).to_numpy(zero_copy_only=False)  # noqa: E731
-    try:
-        trial, agent, step = col("trial").astype(np.int64), col("agent").astype(np.int64), col("step").astype(np.int64)
-        t = col("t").astype(float)
-        states = np.stack([col(c).astype(float) for c in STATE_NAMES], axis=1)
-        ic_dv = np.asarray(table.column("ic_dv").to_numpy(zero_copy_only=False), dtype=float)
-        ic_tco = np.asarray(table.column("ic_tco").to_numpy(zero_copy_only=False), dtype=float)
-        driver = col("driver").astype(np.int64)
-    except (TypeError, ValueError, pa.ArrowInvalid) as exc:
-        raise InputError(f"{name}: a column has the wrong type ({exc}); see the schema in the README") from None
-    role, lane, source = (np.asarray(col(c)).astype(str) for c in ("role", "start_lane", "source"))
+    trial = _integers(table, "trial", name, INT32_MIN, INT32_MAX)
+    agent = _integers(table, "agent", name, 0, 1)
+    step = _integers(table, "step", name, 0, INT32_MAX)
+    driver = _integers(table, "driver", name, INT32_MIN, INT32_MAX)
+    t = _floats(table, "t")
+    states = np.stack([_floats(table, c) for c in STATE_NAMES], axis=1)
+    ic_dv, ic_tco = _floats(table, "ic_dv"), _floats(table, "ic_tco")
+    role, lane, source = (_texts(table, c) for c in ("role", "start_lane", "source"))
 
     bad = ~np.isfinite(states).all(axis=1)
     if bad.any():
         r = int(np.argmax(bad))
         raise InputError(f"{name}: NaN or infinite state in trial {trial[r]}, agent {agent[r]}, step {step[r]} (expected finite numbers)")
+    for values, column in ((ic_dv, "ic_dv"), (ic_tco, "ic_tco")):
+        if np.isinf(values).any():
+            r = int(np.argmax(np.isinf(values)))
+            raise InputError(f"{name}: column {column} is infinite in trial {trial[r]} (expected a finite number, or null when unknown)")
     for values, allowed, what in ((role, ROLES, "role"), (lane, LANES, "start_lane")):
         unknown = sorted(set(map(str, np.unique(values))) - set(allowed))
         if unknown:
-            raise InputError(f"{name}: unknown {what} {unknown[0]!r} (expected one of {', '.join(allowed)})")
-    if not set(np.unique(agent)) <= {0, 1}:
-        raise InputError(f"{name}: agent ids must be 0 or 1, found {sorted(set(np.unique(agent)) - {0, 1})[0]}")
+            raise InputError(f"{name}: unknown {what} {_short(unknown[0])} (expected one of {', '.join(allowed)})")
 
     order = np.lexsort((step, agent, trial))
     trial, agent, step, t = trial[order], agent[order], step[order], t[order]
@@ -251,6 +423,20 @@ def trials_from_table(table: pa.Table, name: str) -> TrialSet:
     if (step != expected_step).any():
         r = int(np.argmax(step != expected_step))
         raise InputError(f"{name}: trial {trial[r]} agent {agent[r]} has steps that are not consecutive from 0 (found step {step[r]}, expected {expected_step[r]})")
+
+    segment_first = np.repeat(starts, seg_len)  # row of each row's (trial, agent) first step
+    trial_first = np.repeat(starts[::2], 2 * lengths)  # row of each row's trial's first row
+    for values, first, what, per in ((role, segment_first, "role", "agent"), (lane, segment_first, "start_lane", "agent"),
+                                     (driver, segment_first, "driver", "agent"), (source, trial_first, "source", "trial"),
+                                     (ic_dv, trial_first, "ic_dv", "trial"), (ic_tco, trial_first, "ic_tco", "trial")):
+        same = values == values[first]
+        if values.dtype.kind == "f":
+            same |= np.isnan(values) & np.isnan(values[first])
+        if not same.all():
+            r = int(np.argmax(~same))
+            raise InputError(f"{name}: trial {trial[r]} agent {agent[r]} changes {what} at step {step[r]} "
+                             f"({_short(values[first[r]].item())} then {_short(values[r].item())}; expected one value per {per})")
+
     short = lengths < MIN_TRIAL_STEPS
     if short.any():
         k = int(np.argmax(short))
@@ -259,7 +445,7 @@ def trials_from_table(table: pa.Table, name: str) -> TrialSet:
     if off_grid.any():
         r = int(np.argmax(off_grid))
         raise InputError(f"{name}: non-uniform time step in trial {trial[r]} at step {step[r]} "
-                         f"(t = {t[r]:.4f} s, expected {step[r] * dt:.4f} s for dt = {dt} s)")
+                         f"(t = {t[r]:.4f} s, expected {step[r] * dt:.4f} s for dt = {dt:g} s)")
 
     t_max = int(lengths.max())
     packed = np.full((n, 2, t_max, 6), np.nan)

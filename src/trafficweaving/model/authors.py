@@ -53,42 +53,65 @@ WEIGHT_MAP = [  # (TensorFlow name, parameter of CVAE, conversion)
 UNUSED = {"global_step", "features_standardization/train_extras_mean", "features_standardization/train_extras_std"}
 
 
-def load_authors_model(path: str | Path) -> CVAE:
-    """The authors' published CVAE from their ``weights.npz``, in evaluation mode.
+def _expected_shape(model: CVAE, target: str, conversion: str) -> tuple[int, ...]:
+    """The shape the TensorFlow array of ``target`` must have."""
+    if conversion == "lstm_kernel":
+        cell = model.get_submodule(target)
+        return (cell.input_size + cell.units, 4 * cell.units)
+    shape = tuple((dict(model.named_parameters()) | dict(model.named_buffers()))[target].shape)
+    return shape[::-1] if conversion == "transpose" else shape
 
-    Raises :class:`InputError` naming the file on a missing or unreadable file, a missing tensor,
-    a shape mismatch or an unexpected extra tensor.
-    """
-    path = Path(path)
-    expected = "the authors' weights.npz (TensorFlow variable names, DESIGN.md §3)"
+
+def _read_npz(path: Path, expected: str) -> dict[str, np.ndarray]:
+    """Every array of the .npz file ``path`` (no pickles); :class:`InputError` naming it otherwise."""
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder (expected {expected})")
     if not path.is_file():
         raise InputError(f"{path}: no such file (expected {expected})")
     try:
         with np.load(path, allow_pickle=False) as npz:
-            weights = {k: npz[k] for k in npz.files}
-    except Exception as exc:  # zipfile/ValueError/OSError: any unreadable file is a user error here
+            if not isinstance(npz, np.lib.npyio.NpzFile):
+                raise TypeError("a single array")
+            return {k: np.asarray(npz[k]) for k in npz.files}
+    except Exception as exc:  # zipfile/ValueError/OSError/...: any unreadable file is a user error here
         raise InputError(f"{path}: not a readable .npz file ({type(exc).__name__}; expected {expected})") from None
 
+
+def load_authors_model(path: str | Path) -> CVAE:
+    """The authors' published CVAE from their ``weights.npz``, in evaluation mode.
+
+    Raises :class:`InputError` naming the file on a missing, unreadable or non-.npz file, and naming
+    the file and array ("tensor NAME") on a missing, misshapen, non-float or non-finite array, a
+    non-positive standard deviation (the value checks of a checkpoint) or an unexpected extra array.
+    """
+    from .checkpoint import check_tensors
+
+    path = Path(path)
+    expected = "the authors' weights.npz, arrays keyed by TensorFlow variable name (docs/model.md)"
+    weights = _read_npz(path, expected)
     model = CVAE(CVAEConfig(has_q=False))
-    params = dict(model.named_parameters()) | dict(model.named_buffers())
+    state = {}
     for tf_name, target, conversion in WEIGHT_MAP:
         if tf_name not in weights:
             raise InputError(f"{path}: missing tensor {tf_name} (expected {expected})")
-        value = torch.from_numpy(np.asarray(weights[tf_name], dtype=np.float32))
+        array, shape = weights[tf_name], _expected_shape(model, target, conversion)
+        if not np.issubdtype(array.dtype, np.floating):
+            raise InputError(f"{path}: tensor {tf_name} has dtype {array.dtype} (expected floating point weights)")
+        if array.shape != shape:
+            raise InputError(f"{path}: tensor {tf_name} has shape {list(array.shape)} (expected {list(shape)})")
+        with np.errstate(over="ignore"):  # a float64 value beyond float32 becomes inf, refused below
+            value = torch.from_numpy(array.astype(np.float32))
         if conversion == "lstm_kernel":
-            cell = model.get_submodule(target)
-            pieces = {f"{target}.weight_input": value[: cell.input_size], f"{target}.weight_hidden": value[cell.input_size:]}
-            if value.shape[0] != cell.input_size + cell.units:
-                raise InputError(f"{path}: {tf_name} has shape {list(value.shape)} (expected [{cell.input_size + cell.units}, {4 * cell.units}])")
+            split = model.get_submodule(target).input_size
+            state |= {f"{target}.weight_input": value[:split], f"{target}.weight_hidden": value[split:]}
         else:
-            pieces = {target: value.T if conversion == "transpose" else value}
-        for name, tensor in pieces.items():
-            if tuple(tensor.shape) != tuple(params[name].shape):
-                want = list(params[name].shape[::-1] if conversion == "transpose" else params[name].shape)
-                raise InputError(f"{path}: {tf_name} has shape {list(value.shape)} (expected {want})")
-            with torch.no_grad():
-                params[name].copy_(tensor)
+            state[target] = value.T if conversion == "transpose" else value
     extra = set(weights) - {n for n, _, _ in WEIGHT_MAP} - UNUSED
     if extra:
         raise InputError(f"{path}: unexpected tensor {sorted(extra)[0]} (expected {expected})")
+    names = {target: tf_name for tf_name, target, _ in WEIGHT_MAP}
+    expected_state = model.state_dict()
+    # NaN/inf (also float64 values overflowing float32) and standard deviations <= 0, named by array
+    check_tensors(state, expected_state, path, lambda name: f"tensor {names.get(name) or names[name.rsplit('.', 1)[0]]}")
+    model.load_state_dict({**expected_state, **state})
     return model.eval()

@@ -1,15 +1,26 @@
 """Model files: saving and loading checkpoints, and resolving ``--model`` specifications.
 
 A checkpoint is a ``torch.save`` dictionary readable with ``weights_only=True`` (no pickled code):
-``format``, ``version``, ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
-and standardisation buffers), ``data_fingerprint``, ``step``, ``history`` (validation NLL by step)
-and, in training checkpoints, ``train_config``, ``optimizer`` and ``rng`` for resuming.
+``format``, ``version`` (2), ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
+and standardisation buffers), ``tensor_sha256`` (a SHA-256 of every tensor in the file, see
+:func:`tensor_digest`), ``data_fingerprint``, ``step``, ``history`` (validation NLL by step) and, in
+training checkpoints, ``train_config``, ``optimizer`` and ``rng`` for resuming.
+
+Loading checks everything a reader later relies on, so that a corrupted or hand-edited file is
+refused with one :class:`InputError` naming it instead of loading silently (``torch.load`` does not
+check the zip entries' CRCs, and ``load_state_dict`` casts integer tensors into float weights) or
+failing later with a traceback: the tensors' digest, the config's types and ranges, each tensor's
+dtype, shape and finiteness, positive standard deviations and calibration (docs/model.md,
+docs/calibration.md), and the types of the fields the commands read.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import io
+import math
+import re
 from importlib import resources
 from pathlib import Path
 
@@ -20,51 +31,283 @@ from ..errors import InputError
 from .cvae import CVAE, CVAEConfig
 
 FORMAT = "trafficweaving-cvae"
-VERSION = 1
+VERSION = 2
+"""2: adds ``tensor_sha256``; version 1 files (no digest) are refused."""
+HASH_FIELD = "tensor_sha256"
 DEFAULT_MODEL = "default_cvae.pt"
 EXPECTED = "a trafficweaving model checkpoint (.pt written by `trafficweaving train`)"
+WRITTEN_BY_US = "expected a checkpoint as written by trafficweaving"
+
+MAX_SIZE = 4096
+"""Largest accepted config size (units, components, latent variables or classes): a guard against
+hand-edited configs that would allocate absurd models; the paper's largest is 128."""
+MAX_LATENT_VALUES = 4096
+"""Largest accepted ``latent_classes ** latent_vars`` (the paper's: 5² = 25), enumerated by the model."""
+POSITIVE_BUFFERS = {"feature_std": "positive standard deviations", "label_std": "positive standard deviations",
+                    "latent_temperature": "a positive temperature", "output_scale": "a positive scale"}
+"""Buffers that divide or scale and must be positive (model/cvae.py, model/calibrate.py)."""
 
 
+# ---------------------------------------------------------------- devices
 def choose_device(name: str = "auto") -> torch.device:
-    """``auto`` picks CUDA when available, else CPU; otherwise the named device."""
+    """``auto`` picks CUDA when available, else CPU; otherwise ``cpu``, ``cuda`` or ``cuda:N``.
+
+    Other torch device types (``meta``, ``mps``, ...) are refused here: the model code runs on CPU
+    and CUDA only, and a ``meta`` model would only fail later, far from the option.
+    """
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    expected = (f"expected auto, cpu, cuda or cuda:N with N < {count}" if count else
+                "expected auto or cpu; cuda and cuda:N need CUDA, which is not available here")
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise InputError(f"unknown device {name!r} (expected auto, cpu, cuda or cuda:N)") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise InputError(f"device {name!r} requested but CUDA is not available (expected auto or cpu)")
-    return device
+        return torch.device("cuda" if count else "cpu")
+    if name == "cpu":
+        return torch.device("cpu")
+    match = re.fullmatch(r"cuda(?::(\d+))?", name) if isinstance(name, str) else None
+    if match is None:
+        raise InputError(f"--device {name!r}: unknown device ({expected})")
+    if not count:
+        raise InputError(f"--device {name!r}: CUDA is not available ({expected})")
+    if match[1] is not None and int(match[1]) >= count:
+        raise InputError(f"--device {name!r}: no such CUDA device, this machine has {count} ({expected})")
+    return torch.device(name)
 
 
-def save_checkpoint(path: str | Path, model: CVAE, **fields) -> None:
-    """Write ``model`` and extra ``fields`` (step, history, data_fingerprint, optimizer, ...) atomically."""
-    payload = {"format": FORMAT, "version": VERSION, "config": model.config.to_dict(),
-               "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, **fields}
+# ---------------------------------------------------------------- the tensor digest
+def _order(key) -> tuple[str, str]:
+    """A total order on dictionary keys of any (mixed) types, deterministic across runs."""
+    return type(key).__name__, repr(key)
+
+
+def _hash_tensors(h, value, where: str) -> None:
+    if isinstance(value, torch.Tensor):
+        tensor = value.detach().cpu()
+        if tensor.layout != torch.strided:
+            tensor = tensor.to_dense()
+        header = f"{where}\0{str(tensor.dtype).removeprefix('torch.')}\0{list(tensor.shape)}".encode()
+        data = tensor.contiguous().reshape(-1).view(torch.uint8).numpy()
+        h.update(len(header).to_bytes(8, "little") + header + data.nbytes.to_bytes(8, "little"))
+        h.update(data)
+    elif isinstance(value, dict):
+        for key in sorted(value, key=_order):
+            _hash_tensors(h, value[key], f"{where}/{key}")
+    elif isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            _hash_tensors(h, item, f"{where}/{i}")
+
+
+def tensor_digest(payload: dict) -> str:
+    """SHA-256 (hex) over every tensor in ``payload`` except the digest field itself: for each, in
+    a fixed walk (dicts in sorted-key order, lists in order), its path (``/state_dict/decoder.bias``),
+    dtype, shape and raw bytes. Detects flipped bytes in a file's tensor data and edited tensors."""
+    h = hashlib.sha256()
+    _hash_tensors(h, {k: v for k, v in payload.items() if k != HASH_FIELD}, "")
+    return h.hexdigest()
+
+
+# ---------------------------------------------------------------- writing
+def write_payload(path: str | Path, payload: dict) -> None:
+    """Write a checkpoint dictionary atomically with its ``tensor_sha256`` (re)computed."""
+    payload = {**payload, HASH_FIELD: tensor_digest(payload)}
     buffer = io.BytesIO()
     torch.save(payload, buffer)
     with atomic_write(path) as f:
         f.write(buffer.getvalue())
 
 
+RESERVED = ("format", "version", "config", "state_dict", HASH_FIELD)
+"""Fields :func:`save_checkpoint` writes itself (given ones are replaced: they describe the model)."""
+
+
+def save_checkpoint(path: str | Path, model: CVAE, **fields) -> None:
+    """Write ``model`` and extra ``fields`` (step, history, data_fingerprint, optimizer, ...) atomically."""
+    payload = {"format": FORMAT, "version": VERSION, "config": model.config.to_dict(),
+               "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+               **{k: v for k, v in fields.items() if k not in RESERVED}}
+    write_payload(path, payload)
+
+
 TRAINING_ONLY = ("optimizer", "rng")
-CALIBRATION = ("latent_temperature", "output_scale")
-"""Buffers set by calibration (model/calibrate.py); checkpoints written before it lack them (1, 1)."""
 
 
 def export_checkpoint(source: str | Path, destination: str | Path, **provenance) -> None:
     """Copy a training checkpoint without what only resuming needs (optimizer moments, RNG state),
     adding ``provenance`` fields (e.g. how the training data was made)."""
-    payload = read_checkpoint(source)
-    model = model_from_checkpoint(payload, source)
-    fields = {k: v for k, v in payload.items() if k not in (*TRAINING_ONLY, "format", "version", "config", "state_dict")}
+    payload, model = _read(source)
+    fields = {k: v for k, v in payload.items() if k not in (*TRAINING_ONLY, *RESERVED)}
     save_checkpoint(destination, model, **fields, **provenance)
 
 
-def read_checkpoint(path: str | Path) -> dict:
-    """The validated checkpoint dictionary; :class:`InputError` naming the file when it is not one."""
+# ---------------------------------------------------------------- reading and checking
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _is_list_of(value, test) -> bool:
+    return isinstance(value, (list, tuple)) and all(test(v) for v in value)
+
+
+def _history_entry(entry) -> bool:
+    """``(step, validation NLL, ...)``; an NLL may be None (nothing to validate)."""
+    return (_is_list_of(entry, lambda v: v is None or _is_number(v)) and len(entry) >= 2
+            and _is_int(entry[0]) and entry[0] >= 0)
+
+
+FIELD_CHECKS = {  # field: (test, what is expected); fields read by train, crossval, calibrate, demo, scripts
+    "step": (lambda v: _is_int(v) and v >= 0, "a non-negative integer"),
+    "history": (lambda v: _is_list_of(v, _history_entry), "a list of [step, validation NLL, ...] rows"),
+    "data_fingerprint": (lambda v: isinstance(v, str), "a string"),
+    "held_out_trials": (lambda v: _is_list_of(v, _is_int), "a list of integer trial ids"),
+    "init": (lambda v: isinstance(v, dict), "a dictionary"),
+    "calibration": (lambda v: isinstance(v, dict), "a dictionary"),
+    "crossval": (lambda v: isinstance(v, dict), "a dictionary"),
+    "train_config": (lambda v: isinstance(v, dict) and all(isinstance(k, str) for k in v), "a dictionary"),
+    "recipe": (lambda v: isinstance(v, str), "a string"),
+    "data_command": (lambda v: isinstance(v, str), "a string"),
+    "summary": (lambda v: isinstance(v, str), "a string"),
+}
+
+
+def _check_train_config(config: dict, path) -> None:
+    """Types of the known :class:`~trafficweaving.model.train.TrainConfig` fields (``--resume``)."""
+    from .train import TrainConfig  # here: train imports this module
+
+    for f in dataclasses.fields(TrainConfig):
+        if f.name not in config or f.default is None:
+            continue
+        value, default = config[f.name], f.default
+        if _is_int(default):
+            ok, expected = _is_int(value), "an integer"
+        elif isinstance(default, float):
+            ok, expected = _is_number(value) and math.isfinite(value), "a finite number"
+        else:
+            ok, expected = isinstance(value, type(default)), type(default).__name__
+        if not ok:
+            raise InputError(f"{path}: train_config field {f.name} is {_short(value)} (expected {expected}; {WRITTEN_BY_US})")
+
+
+def _check_optimizer(optimizer, path) -> None:
+    """Structure and finiteness of the resumable optimizer state (a ``torch.optim`` state dict)."""
+    groups = optimizer.get("param_groups") if isinstance(optimizer, dict) else None
+    if not (isinstance(optimizer, dict) and isinstance(optimizer.get("state"), dict)
+            and _is_list_of(groups, lambda g: isinstance(g, dict) and _is_list_of(g.get("params"), _is_int))):
+        raise InputError(f"{path}: checkpoint field optimizer is malformed (expected a torch optimizer state "
+                         f"dict with state and param_groups; {WRITTEN_BY_US})")
+    for key, state in optimizer["state"].items():
+        tensors = [t for t in state.values() if isinstance(t, torch.Tensor)] if isinstance(state, dict) else None
+        if tensors is None or not all(t.is_floating_point() and torch.isfinite(t).all() for t in tensors):
+            raise InputError(f"{path}: optimizer state {_short(key)} is malformed or not finite "
+                             f"(expected finite float tensors; {WRITTEN_BY_US})")
+
+
+def _check_rng(rng, path) -> None:
+    """The saved ``torch.get_rng_state()`` that ``--resume`` restores."""
+    expected = torch.get_rng_state()
+    if not (isinstance(rng, torch.Tensor) and rng.dtype == torch.uint8 and rng.shape == expected.shape):
+        raise InputError(f"{path}: checkpoint field rng is not a torch CPU RNG state (expected a uint8 tensor "
+                         f"of {expected.numel()} bytes; {WRITTEN_BY_US})")
+
+
+def check_fields(payload: dict, path: str | Path) -> None:
+    """:class:`InputError` when a field that the commands read has the wrong type or range."""
+    for name, (test, expected) in FIELD_CHECKS.items():
+        if name in payload and not test(payload[name]):
+            raise InputError(f"{path}: checkpoint field {name} is {_short(payload[name])} "
+                             f"(expected {expected}; {WRITTEN_BY_US})")
+    if "train_config" in payload:
+        _check_train_config(payload["train_config"], path)
+    if "optimizer" in payload:
+        _check_optimizer(payload["optimizer"], path)
+    if "rng" in payload:
+        _check_rng(payload["rng"], path)
+
+
+def config_from_checkpoint(payload: dict, path: str | Path) -> CVAEConfig:
+    """The checkpoint's :class:`CVAEConfig`, every field checked for type and range."""
+    fields = {f.name: f for f in dataclasses.fields(CVAEConfig)}
+    config = payload.get("config")
+    if not isinstance(config, dict):
+        raise InputError(f"{path}: checkpoint has no config dictionary (expected the fields {sorted(fields)})")
+    for key, value in config.items():
+        if key not in fields:
+            raise InputError(f"{path}: config has unknown field {_short(key)} (expected only {sorted(fields)})")
+        default = fields[key].default
+        if isinstance(default, bool):
+            ok, expected = isinstance(value, bool), "true or false"
+        elif _is_int(default):
+            ok, expected = _is_int(value) and 1 <= value <= MAX_SIZE, f"an integer in 1..{MAX_SIZE}"
+        elif isinstance(default, float):
+            ok, expected = _is_number(value) and math.isfinite(value), "a finite number"
+        else:
+            ok, expected = default is None or isinstance(value, type(default)), type(default).__name__
+        if not ok:
+            raise InputError(f"{path}: config field {key} is {_short(value)} (expected {expected})")
+    result = CVAEConfig(**config)
+    latent_values = result.latent_classes ** min(result.latent_vars, 64)
+    if latent_values > MAX_LATENT_VALUES:
+        raise InputError(f"{path}: config latent_classes ** latent_vars is {result.latent_classes}^{result.latent_vars} "
+                         f"(expected at most {MAX_LATENT_VALUES} latent values)")
+    return result
+
+
+def _dtype(dtype: torch.dtype) -> str:
+    return str(dtype).removeprefix("torch.")
+
+
+def check_tensors(state: dict, expected: dict, path: str | Path, label=lambda name: f"tensor {name}") -> None:
+    """Each tensor of ``state`` has the dtype and shape of ``expected``'s, finite values and, for the
+    standardisation stds and calibration, positive ones. Messages name ``path`` and ``label(name)``."""
+    for name, tensor in state.items():
+        want, what = expected[name], label(name)
+        if not isinstance(tensor, torch.Tensor):
+            raise InputError(f"{path}: {what} is {_short(tensor)} (expected a tensor)")
+        if tensor.layout != torch.strided:
+            raise InputError(f"{path}: {what} is stored as {tensor.layout} (expected a dense tensor)")
+        if tensor.dtype != want.dtype:
+            raise InputError(f"{path}: {what} has dtype {_dtype(tensor.dtype)} (expected {_dtype(want.dtype)})")
+        if tuple(tensor.shape) != tuple(want.shape):
+            raise InputError(f"{path}: {what} has shape {list(tensor.shape)} (expected {list(want.shape)})")
+        if tensor.is_floating_point() and not torch.isfinite(tensor).all():
+            raise InputError(f"{path}: {what} has NaN or infinite values (expected finite weights)")
+        if name in POSITIVE_BUFFERS and tensor.numel() and not (tensor > 0).all():
+            raise InputError(f"{path}: {what} has a value {tensor.min().item():g} <= 0 "
+                             f"(expected {POSITIVE_BUFFERS[name]})")
+
+
+def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
+    """Build the model a checkpoint describes and load its weights, checking every tensor."""
+    model = CVAE(config_from_checkpoint(payload, path))
+    expected = model.state_dict()
+    state = payload.get("state_dict")
+    if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
+        raise InputError(f"{path}: checkpoint has no state_dict dictionary (expected tensors by parameter name)")
+    missing, extra = set(expected) - set(state), set(state) - set(expected)
+    if missing or extra:
+        name = sorted(missing or extra)[0]
+        raise InputError(f"{path}: checkpoint {'lacks' if missing else 'has unexpected'} tensor {name} (expected a {model.config.name} model)")
+    check_tensors(state, expected, path)
+    optimizer = payload.get("optimizer")
+    if isinstance(optimizer, dict) and isinstance(optimizer.get("param_groups"), list):
+        count, params = sum(len(g.get("params", ())) for g in optimizer["param_groups"]), len(list(model.parameters()))
+        if count != params:
+            raise InputError(f"{path}: optimizer state covers {count} parameters (expected the model's {params})")
+    model.load_state_dict(state)
+    return model.eval()
+
+
+def _read(path: str | Path) -> tuple[dict, CVAE]:
+    """The validated checkpoint dictionary and its model (see :func:`read_checkpoint`)."""
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder (expected {EXPECTED})")
     if not path.is_file():
         raise InputError(f"{path}: no such file (expected {EXPECTED})")
     try:
@@ -73,42 +316,38 @@ def read_checkpoint(path: str | Path) -> dict:
         raise InputError(f"{path}: not a readable checkpoint ({type(exc).__name__}; expected {EXPECTED})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise InputError(f"{path}: not a trafficweaving model checkpoint (expected {EXPECTED})")
-    if payload.get("version") != VERSION:
-        raise InputError(f"{path}: checkpoint version {payload.get('version')} (expected {VERSION})")
-    return payload
+    version = payload.get("version")
+    if version != VERSION or isinstance(version, bool):
+        raise InputError(f"{path}: checkpoint version {_short(version)} (expected version {VERSION}, which carries a "
+                         f"SHA-256 of its tensors; version 1 files are no longer read)")
+    stored = payload.get(HASH_FIELD)
+    if not (isinstance(stored, str) and re.fullmatch(r"[0-9a-f]{64}", stored)):
+        raise InputError(f"{path}: checkpoint has no valid {HASH_FIELD} ({WRITTEN_BY_US})")
+    try:
+        actual = tensor_digest(payload)
+    except Exception as exc:  # an exotic tensor that torch.load accepted but cannot be hashed
+        raise InputError(f"{path}: tensor data cannot be read ({type(exc).__name__}; {WRITTEN_BY_US})") from None
+    if actual != stored:
+        raise InputError(f"{path}: tensor data does not match the checkpoint's SHA-256 "
+                         f"(the file is corrupted or was edited; {WRITTEN_BY_US})")
+    check_fields(payload, path)
+    return payload, model_from_checkpoint(payload, path)
 
 
-def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
-    """Build the model a checkpoint describes and load its weights, checking every tensor."""
-    fields = {f.name for f in dataclasses.fields(CVAEConfig)}
-    config = payload.get("config")
-    if not isinstance(config, dict) or set(config) - fields:
-        raise InputError(f"{path}: checkpoint has a malformed config (expected the fields {sorted(fields)})")
-    model = CVAE(CVAEConfig(**config))
-    expected = model.state_dict()
-    state = payload.get("state_dict", {})
-    state = {**{k: expected[k] for k in CALIBRATION if k not in state}, **state}  # older files: uncalibrated
-    missing, extra = set(expected) - set(state), set(state) - set(expected)
-    if missing or extra:
-        name = sorted(missing or extra)[0]
-        raise InputError(f"{path}: checkpoint {'lacks' if missing else 'has unexpected'} tensor {name} (expected a {model.config.name} model)")
-    for name, tensor in state.items():
-        if tuple(tensor.shape) != tuple(expected[name].shape):
-            raise InputError(f"{path}: tensor {name} has shape {list(tensor.shape)} (expected {list(expected[name].shape)})")
-        if not torch.isfinite(tensor).all():
-            raise InputError(f"{path}: tensor {name} has NaN or infinite values (expected finite weights)")
-    model.load_state_dict(state)
-    return model.eval()
+def read_checkpoint(path: str | Path) -> dict:
+    """The validated checkpoint dictionary; :class:`InputError` naming the file when it is not one,
+    is corrupted (tensor digest), or holds a model or field that would fail later."""
+    return _read(path)[0]
 
 
 def load_checkpoint(path: str | Path) -> tuple[CVAE, dict]:
     """The model of a checkpoint file (evaluation mode) and the checkpoint dictionary."""
-    payload = read_checkpoint(path)
-    return model_from_checkpoint(payload, path), payload
+    payload, model = _read(path)
+    return model, payload
 
 
 def default_model_path() -> Path:
-    """The model shipped inside the package (``cvae`` trained on our synthetic data)."""
+    """The model shipped inside the package (``cvae-hold`` trained on our synthetic data and the real trials)."""
     return Path(str(resources.files(__package__).joinpath(DEFAULT_MODEL)))
 
 

@@ -20,6 +20,7 @@ import torch
 
 from ..data.trials import TrialSet
 from ..errors import InputError
+from ..scenario import MIN_TRIAL_STEPS
 from .checkpoint import load_checkpoint, load_model, save_checkpoint
 from .cvae import CVAE
 from .evaluate import evaluate
@@ -121,7 +122,7 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
         held_ex = build_exemplars(held)
         if len(held_ex) == 0:
             raise InputError(f"fold {k + 1} has no prediction instances (expected every fold to hold human agents "
-                             f"in trials of at least 21 steps; try fewer folds)")
+                             f"in trials of at least {MIN_TRIAL_STEPS} steps; try fewer folds)")
         log(f"fold {k + 1}/{folds}: {len(rest)} training trials, {len(held)} held out ({len(held_ex)} instances)")
         weights = {}  # step -> CPU copy of the fold's weights, for saving the chosen step's model
         keep = lambda step, model: weights.__setitem__(step, _cpu_copy(model))  # noqa: E731

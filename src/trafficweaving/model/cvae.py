@@ -2,8 +2,10 @@
 the paper's Fig. 3 and of ``cvae-hold`` (the CVAE with a hold-aware output, see docs/model.md).
 
 Shapes: ``B`` exemplars, ``L`` history steps, ``N = 15`` future steps, ``S`` latent samples per
-exemplar, ``Z = K_z^N_z`` joint latent values. Every tensor here is *standardised* (the model holds
-its standardisation as buffers; :mod:`trafficweaving.model.predictor` converts physical units).
+exemplar, ``Z = K_z^N_z`` joint latent values. Every tensor here is *standardised*: the model owns its
+standardisation (buffers ``feature_mean``, ``feature_std``, ``label_mean``, ``label_std``, set by
+:meth:`CVAE.set_standardisation`) and is the one place that converts physical units
+(:meth:`CVAE.states_to_standard`, :meth:`CVAE.actions_to_standard`, :meth:`CVAE.actions_to_physical`).
 """
 
 from __future__ import annotations
@@ -11,16 +13,21 @@ from __future__ import annotations
 import itertools
 from dataclasses import asdict, dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..scenario import HORIZON, MIN_HISTORY
+from ..scenario import HORIZON, STATE_NAMES
 from .gmm import GMM, GMMHead, HoldHead, HoldMixture
 from .lstm import LSTMCell, SequenceSummary, StateProjection, dropout_masks
 
-STATE_DIM = 6
-ACTION_DIM = 2
+STATE_DIM = len(STATE_NAMES)
+"""Components of a car state (m, m/s, m/s²)."""
+ACCEL = slice(STATE_NAMES.index("xdd"), STATE_NAMES.index("ydd") + 1)
+"""The accelerations within a car state: the human's actions (paper §II-C, ``u_h = [s̈_h, τ̈_h]``)."""
+ACTION_DIM = ACCEL.stop - ACCEL.start
+"""Components of a human action (m/s²)."""
 
 VARIANTS = {  # name: (latent_vars N_z, latent_classes K_z, components M, hold)
     "cvae": (2, 5, 16, False),  # the paper's Fig. 3 ...
@@ -144,6 +151,22 @@ class CVAE(nn.Module):
     def actions_to_physical(self, actions: torch.Tensor) -> torch.Tensor:
         """Standardised human actions ``[..., 2]`` back in m/s² (inverse of :meth:`actions_to_standard`)."""
         return actions * self.label_std + self.label_mean
+
+    def set_standardisation(self, state_mean: np.ndarray | torch.Tensor, state_std: np.ndarray | torch.Tensor) -> "CVAE":
+        """Set the standardisation buffers in place from the mean and std ``[6]`` of car states
+        (m, m/s, m/s²; :func:`~trafficweaving.model.exemplars.state_statistics`): the features use
+        them as they are, the labels their acceleration components (the human's actions are its
+        accelerations); returns the model."""
+        mean, std = torch.as_tensor(state_mean), torch.as_tensor(state_std)
+        if mean.shape != (STATE_DIM,) or std.shape != (STATE_DIM,) or not (mean.isfinite().all() and (std > 0).all() and std.isfinite().all()):
+            raise ValueError(f"standardisation must be a finite mean and a positive finite std of shape [{STATE_DIM}], "
+                             f"got {mean.tolist()} and {std.tolist()}")
+        with torch.no_grad():
+            self.feature_mean.copy_(mean)
+            self.feature_std.copy_(std)
+            self.label_mean.copy_(self.feature_mean[ACCEL])
+            self.label_std.copy_(self.feature_std[ACCEL])
+        return self
 
     def set_calibration(self, latent_temperature: float, output_scale: float) -> "CVAE":
         """Set the calibration buffers in place (both positive; 1 and 1: the trained model as it

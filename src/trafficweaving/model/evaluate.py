@@ -21,8 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .cvae import CVAE, HORIZON
-from .exemplars import ExemplarSet, ExemplarTensors, Standardisation
+from ..scenario import HORIZON
+from .cvae import CVAE
+from .exemplars import ExemplarSet, ExemplarTensors
 
 
 @dataclass
@@ -39,12 +40,6 @@ class Evaluation:
         mean = lambda a: None if a is None else float(np.mean(a))  # noqa: E731
         return {"instances": int(len(self.nll_exact)), "nll_exact": mean(self.nll_exact),
                 "nll_is": mean(self.nll_is), "nll_naive": mean(self.nll_naive)}
-
-
-def model_standardisation(model: CVAE) -> Standardisation:
-    """The standardisation a model was trained with (its buffers) as NumPy arrays."""
-    get = lambda name: getattr(model, name).detach().cpu().double().numpy()  # noqa: E731
-    return Standardisation(get("feature_mean"), get("feature_std"), get("label_mean"), get("label_std"))
 
 
 def physical_offset(model: CVAE) -> float:
@@ -96,7 +91,4 @@ def evaluate_tensors(model: CVAE, data: ExemplarTensors, samples: int = 50, seed
 def evaluate(model: CVAE, exemplars: ExemplarSet, samples: int = 50, seed: int = 0, batch_size: int = 512) -> Evaluation:
     """Evaluate ``model`` on every exemplar of ``exemplars`` (physical units, standardised with the
     model's own statistics, on the model's device)."""
-    device = next(model.parameters()).device
-    dtype = next(model.parameters()).dtype
-    data = exemplars.standardised(model_standardisation(model), device, dtype)
-    return evaluate_tensors(model, data, samples, seed, batch_size)
+    return evaluate_tensors(model, exemplars.standardised(model), samples, seed, batch_size)

@@ -1,5 +1,6 @@
 """Prediction exemplars from trials: ``(history 0..t, other car's future t+1..t+15, human actions
-t+1..t+15)`` for every ``4 <= t <= T-16``, and the standardisation the model learns them in.
+t+1..t+15)`` for every ``4 <= t <= T-16``, and the state statistics the model's standardisation is
+fitted to (:meth:`~trafficweaving.model.cvae.CVAE.set_standardisation`).
 
 A *stream* is one trial seen from one agent taking the human role: ``[T, 2, 6]`` states with the
 other car (the "robot") first. Every agent whose role is ``human`` gives a stream, so each car of a
@@ -15,29 +16,16 @@ import numpy as np
 import torch
 
 from ..data.trials import TrialSet
-from .cvae import HORIZON, MIN_HISTORY, Batch
+from ..scenario import HORIZON, MIN_HISTORY
+from .cvae import ACCEL, CVAE, STATE_DIM, Batch
 
-ACCEL = slice(4, 6)  # xdd, ydd within a state
 
-
-@dataclass(frozen=True)
-class Standardisation:
-    """Feature mean/std ``[6]`` shared by both cars' states and label mean/std ``[2]`` for the
-    human's actions (physical units)."""
-
-    feature_mean: np.ndarray
-    feature_std: np.ndarray
-    label_mean: np.ndarray
-    label_std: np.ndarray
-
-    @staticmethod
-    def fit(trials: TrialSet) -> "Standardisation":
-        """Mean and std over every recorded state of both cars; the labels use the acceleration
-        columns of the same statistics (the human's actions are its accelerations)."""
-        rows = np.concatenate([trials.states[i, :, : trials.lengths[i]].reshape(-1, 6) for i in range(len(trials))])
-        mean, std = rows.mean(axis=0), rows.std(axis=0)
-        std = np.where(std > 1e-6, std, 1.0)
-        return Standardisation(mean, std, mean[ACCEL].copy(), std[ACCEL].copy())
+def state_statistics(trials: TrialSet) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std ``[6]`` (m, m/s, m/s²) over every recorded state of both cars of ``trials``;
+    a component that does not vary (std below 1e-6) gets std 1."""
+    rows = np.concatenate([trials.states[i, :, : trials.lengths[i]].reshape(-1, STATE_DIM) for i in range(len(trials))])
+    mean, std = rows.mean(axis=0), rows.std(axis=0)
+    return mean, np.where(std > 1e-6, std, 1.0)
 
 
 @dataclass
@@ -60,15 +48,17 @@ class ExemplarSet:
     def __len__(self) -> int:
         return len(self.t)
 
-    def standardised(self, std: Standardisation, device: torch.device | str = "cpu",
-                     dtype: torch.dtype = torch.float32) -> "ExemplarTensors":
-        """The streams standardised and moved to ``device``, ready for batching."""
-        states = np.nan_to_num((self.streams - std.feature_mean) / std.feature_std)  # [S, T, 2, 6]
-        actions = np.nan_to_num((self.streams[:, :, 1, ACCEL] - std.label_mean) / std.label_std)
-        as_tensor = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
+    def standardised(self, model: CVAE) -> "ExemplarTensors":
+        """The streams in ``model``'s standardised units (:meth:`CVAE.states_to_standard`,
+        :meth:`CVAE.actions_to_standard`, computed in float64; padding 0), on the model's device and
+        in its dtype, ready for batching."""
+        device, dtype = model.feature_mean.device, model.feature_mean.dtype
+        streams = torch.as_tensor(self.streams, dtype=torch.float64, device=device)  # [S, T, 2, 6]
+        states = torch.nan_to_num(model.states_to_standard(streams))
+        actions = torch.nan_to_num(model.actions_to_standard(streams[:, :, 1, ACCEL]))
         return ExemplarTensors(
-            states=as_tensor(states.reshape(*states.shape[:2], 12)),
-            actions=as_tensor(actions),
+            states=states.reshape(*states.shape[:2], 2 * STATE_DIM).to(dtype),
+            actions=actions.to(dtype),
             stream=torch.as_tensor(self.stream, device=device),
             t=torch.as_tensor(self.t, device=device),
         )
@@ -104,20 +94,22 @@ class ExemplarTensors:
         return Batch(
             history=states[:, :steps],
             t=t,
-            robot_present=states[rows, t, :6],
-            robot_future=states[rows.unsqueeze(1), future, :6],
-            human_present=states[rows, t, 6:],
+            robot_present=states[rows, t, :STATE_DIM],
+            robot_future=states[rows.unsqueeze(1), future, :STATE_DIM],
+            human_present=states[rows, t, STATE_DIM:],
             human_present_action=self.actions[s, t],
             y=self.actions[s.unsqueeze(1), future],
         )
 
 
 def build_exemplars(trials: TrialSet) -> ExemplarSet:
-    """Every exemplar of every agent labelled ``human`` in ``trials``, conditioned on the other agent."""
+    """Every exemplar of every agent labelled ``human`` in ``trials``, conditioned on the other agent
+    (refused unless the trials' time step is the model's, 0.1 s)."""
+    trials.require_dt()
     pairs = [(i, a) for i in range(len(trials)) for a in (0, 1) if trials.roles[i, a] == "human"]
     n = len(pairs)
     t_max = trials.states.shape[2]
-    streams = np.full((n, t_max, 2, 6), np.nan)
+    streams = np.full((n, t_max, 2, STATE_DIM), np.nan)
     stream_list, t_list = [], []
     for k, (i, a) in enumerate(pairs):
         streams[k, :, 0] = trials.states[i, 1 - a]

@@ -1,7 +1,7 @@
 """The decoder's per-step output distribution over the human's action ``[xdd, ydd]``.
 
-* :class:`GMM`: the paper's bivariate Gaussian mixture (DESIGN of the paper's decoder: 16
-  components, clipped log-sigma, per-step log density capped at 50).
+* :class:`GMM`: the paper's bivariate Gaussian mixture (§III-A) as the authors' code builds it: 16
+  components, clipped log-sigma, per-step log density capped at 50.
 * :class:`HoldMixture`: the ``cvae-hold`` variant's output. Real drivers control intermittently:
   they set the pedal or the wheel and leave it, so the next acceleration often *equals* the
   previous one in one direction or both. The hold mixture puts weight ``w`` on four modes

@@ -2,7 +2,7 @@
 instance's lane-change phase, and metrics of sampled human futures (positions).
 
 * **Positions.** Sampled accelerations become positions by the trapezoid rule from the recorded
-  present state (:func:`~trafficweaving.model.predictor.future_states`). The true positions are
+  present state (:func:`~trafficweaving.dynamics.future_states`). The true positions are
   integrated the same way from the *recorded* accelerations (:func:`true_positions`), so the
   sampled metrics judge the action model alone: on the synthetic data this is the recording
   exactly; on the 30 real trials the recorded positions differ from it by 1.4 cm (x) and 3.5 cm
@@ -42,15 +42,15 @@ import torch
 from ..atomic import atomic_write
 from ..data.behaviour import HOLD_TOLERANCE, lane_change_events
 from ..data.trials import TrialSet
-from ..scenario import DT
-from .cvae import CVAE, HORIZON
-from .evaluate import Evaluation, evaluate_tensors, model_standardisation
-from .exemplars import ACCEL, ExemplarSet, ExemplarTensors
 from ..dynamics import future_states
+from ..scenario import DT, HORIZON
+from .cvae import ACCEL, CVAE
+from .evaluate import Evaluation, evaluate_tensors
+from .exemplars import ExemplarSet, ExemplarTensors
 
 DIRECTIONS = ("x", "y")
-HORIZON_STEPS = (5, 10, 15)
-"""Horizons of the coverage, steps ahead (0.5, 1.0, 1.5 s)."""
+HORIZON_STEPS = (5, 10, HORIZON)
+"""Horizons of the coverage, steps ahead (0.5, 1.0, 1.5 s: the last is the full horizon)."""
 LEVELS = (0.5, 0.9)
 """Central-interval levels reported by default."""
 PHASES = ("before", "during", "after", "none")
@@ -112,10 +112,9 @@ def sampled_metrics(model: CVAE, exemplars: ExemplarSet, index: np.ndarray, samp
     ``ade_samples`` of them, for exemplars ``index [E']`` (``data``: the exemplars already
     standardised for ``model``, to reuse)."""
     model.eval()
-    parameter = next(model.parameters())
-    device = parameter.device
+    device = next(model.parameters()).device
     if data is None:
-        data = exemplars.standardised(model_standardisation(model), device, parameter.dtype)
+        data = exemplars.standardised(model)
     draws = max(samples, ade_samples)
     generator = torch.Generator(device=device).manual_seed(seed)
     truth = torch.as_tensor(true_positions(exemplars, index), device=device)  # [E', 15, 2]
@@ -135,7 +134,7 @@ def sampled_metrics(model: CVAE, exemplars: ExemplarSet, index: np.ndarray, samp
         z = torch.multinomial(p_z, draws, replacement=True, generator=generator).T  # [S, B]
         actions = model.sample_actions(model.zx(model.latent_onehots[z], x), model.decoder_robot_inputs(batch),
                                        batch.human_present_action, generator)
-        actions = actions.double() * model.label_std.double() + model.label_mean.double()
+        actions = model.actions_to_physical(actions.double())
         positions = future_states(present[rows], actions)[..., :2]  # [S, B, 15, 2]
         true = truth[rows]
         # coverage: [2L, B, 3, 2] quantiles of the first `samples` draws at the horizons
@@ -145,7 +144,7 @@ def sampled_metrics(model: CVAE, exemplars: ExemplarSet, index: np.ndarray, samp
         error = torch.linalg.vector_norm(positions[:ade_samples] - true, dim=-1)  # [k, B, 15]
         ade.append(error.mean(-1).min(0).values)
         fde.append(error[..., -1].min(0).values)
-        present_action = present[rows, 4:6]
+        present_action = present[rows, ACCEL]
         held.append(torch.stack([held_fraction(present_action, actions).mean(0),
                                  held_fraction(present_action, truth_actions[rows])], 1))
     cat = lambda parts: torch.cat(parts).cpu().numpy()  # noqa: E731
@@ -273,8 +272,7 @@ def evaluate_instances(model: CVAE, trials: TrialSet, exemplars: ExemplarSet, sa
     """Every metric of every exemplar of ``exemplars = build_exemplars(trials)``: the NLLs
     (``nll_samples`` latent samples for the sampled estimators) and, on all exemplars or on
     ``max_sampled`` of them chosen at random (``seed``), the sampled metrics."""
-    parameter = next(model.parameters())
-    data = exemplars.standardised(model_standardisation(model), parameter.device, parameter.dtype)
+    data = exemplars.standardised(model)
     evaluation = evaluate_tensors(model, data, nll_samples, seed)
     n = len(exemplars)
     index = np.arange(n)

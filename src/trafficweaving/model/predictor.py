@@ -1,19 +1,51 @@
-"""Sampling of human futures in physical units for one history and many robot futures.
+"""The CVAE as a model of the human to sample from, in physical units: one history, many candidate
+robot futures, many samples each.
 
-Given one interaction history and ``B`` candidate robot futures, :meth:`HumanPredictor.sample`
-draws ``n`` human action sequences per candidate in one batched call: the history is encoded once,
-each candidate's future once, then ``n·B`` latent values and decoder rollouts run together.
+:class:`HumanPredictor` is the one way to sample the CVAE's human futures outside training: the
+planner's two-call protocol (:meth:`HumanPredictor.prepare` once per plan, then
+:meth:`HumanPredictor.sample` for subsets of candidates; the planner's ``HumanModel``) and the
+one-shot :meth:`HumanPredictor.predict` for figures and tests. Both run the fast batched decoder
+rollout (:class:`~trafficweaving.model.sampler.BatchedRollout`): the history is encoded once, each
+candidate's future once, then ``n·B`` latent values and decoder rollouts run together.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
-import numpy as np
 import torch
 
-from .cvae import CVAE, HORIZON, MIN_HISTORY, STATE_DIM
-from .sampler import BatchedSampler
+from .. import validate
+from ..errors import InputError
+from ..scenario import HORIZON
+from .cvae import ACCEL, CVAE, STATE_DIM
+from .sampler import BatchedRollout
+
+PRECISIONS = ("auto", "float32", "bfloat16")
+"""Choices of :func:`resolve_precision`."""
+
+
+def native_bfloat16(device: torch.device | str = "cpu") -> bool:
+    """Whether ``device`` is a CPU with native bfloat16 matrix instructions (AVX512-BF16 or AMX),
+    where bfloat16 matrix multiplies run about twice as fast as float32."""
+    if torch.device(device).type != "cpu" or not torch.backends.mkldnn.is_available():
+        return False
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
+def resolve_precision(precision: str, device: torch.device | str = "cpu") -> torch.dtype:
+    """The dtype of the decoder's matrix multiplies for ``precision`` (one of :data:`PRECISIONS`):
+    ``auto`` is bfloat16 on CPUs with native bfloat16 (:func:`native_bfloat16`), else float32."""
+    if precision not in PRECISIONS:
+        raise InputError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    if precision == "auto":
+        return torch.bfloat16 if native_bfloat16(device) else torch.float32
+    return {"float32": torch.float32, "bfloat16": torch.bfloat16}[precision]
 
 
 @dataclass
@@ -27,46 +59,85 @@ class Prediction:
     log_p_z: torch.Tensor
 
 
-def _as_array(name: str, value, shape_text: str, ndim: int, last: tuple[int, ...]) -> np.ndarray:
-    array = np.asarray(value.detach().cpu() if isinstance(value, torch.Tensor) else value, dtype=np.float64)
-    if array.ndim != ndim or array.shape[ndim - len(last):] != last:
-        raise ValueError(f"{name} has shape {list(array.shape)} (expected {shape_text})")
-    if not np.isfinite(array).all():
-        raise ValueError(f"{name} has NaN or infinite values (expected finite numbers)")
-    return array
-
-
 class HumanPredictor:
-    """Samples human futures from a :class:`CVAE` (evaluation mode, on the model's device),
-    through the planner's fast batched sampler."""
+    """Samples human futures from a :class:`CVAE` (evaluation mode, on the model's device).
 
-    def __init__(self, model: CVAE):
+    ``precision``: the dtype of the decoder's matrix multiplies for a float32 model (one of
+    :data:`PRECISIONS`; a float64 model always runs in float64): ``float32`` samples the model
+    exactly as it is; ``bfloat16`` keeps the state and gate arithmetic in float32 and is about
+    twice as fast on CPUs with native bfloat16, with slightly different numbers (docs/planner.md
+    measures the planner's decisions); ``auto`` is bfloat16 where native. ``chunk_rows``: decoder
+    rows per chunk (the working set stays in cache).
+
+    :attr:`device` and :attr:`dtype` are the model's; tensors returned live there.
+    """
+
+    def __init__(self, model: CVAE, precision: str = "float32", chunk_rows: int = 2048):
         self.model = model.eval()
-        self.sampler = BatchedSampler(model)
-        self.device = next(model.parameters()).device
+        weights = next(model.parameters())
+        self.device, self.dtype = weights.device, weights.dtype
+        matmul_dtype = resolve_precision(precision, self.device) if self.dtype == torch.float32 else self.dtype
+        self.rollout = BatchedRollout(model, validate.integer("chunk_rows", chunk_rows, 1), matmul_dtype)
+        self.context: dict | None = None
+        self.candidates = 0
+
+    @property
+    def precision(self) -> str:
+        """The dtype of the decoder's matrix multiplies, e.g. ``"bfloat16"``."""
+        return str(self.rollout.matmul_dtype).removeprefix("torch.")
+
+    def prepare(self, history, robot_futures) -> None:
+        """Encode one situation for :meth:`sample`: ``history [t+1, 2, 6]`` states ``[x, y, xd, yd,
+        xdd, ydd]`` (m, m/s, m/s²) of the robot (index 0) and the human (index 1) at steps 0..t,
+        ``t >= 4``; ``robot_futures [B, 15, 6]`` the robot's states at steps t+1..t+15 for each of
+        ``B`` candidates. Arrays or tensors."""
+        self.context = self._encode(history, robot_futures)
+        self.candidates = len(self.context["x_gates"])
+
+    def sample(self, candidates, n: int, generator: torch.Generator | None) -> torch.Tensor:
+        """Human accelerations ``[n, len(candidates), 15, 2]`` (m/s², ``[xdd, ydd]`` at steps
+        t+1..t+15) for the candidate indices ``candidates [k]`` (into the robot futures of the last
+        :meth:`prepare`), drawn with ``generator`` (on :attr:`device`)."""
+        if self.context is None:
+            raise RuntimeError("HumanPredictor.sample needs a situation: call prepare(history, robot_futures) first")
+        validate.indices("candidates", candidates, self.candidates)
+        candidates = torch.as_tensor(candidates, device=self.device)
+        return self._draw(self.context, candidates, validate.integer("n", n, 1), generator)[0]
 
     @torch.no_grad()
-    def sample(self, history, robot_futures, n: int, seed: int | None = 0) -> Prediction:
-        """Sample ``n`` human action sequences for each candidate robot future.
-
-        ``history [t+1, 2, 6]``: states ``[x, y, xd, yd, xdd, ydd]`` of the robot (index 0) and
-        the human (index 1) at steps 0..t, ``t >= 4``; ``robot_futures [B, 15, 6]``: the robot's
-        states at steps t+1..t+15 for each candidate. Deterministic for a given ``seed`` on a
-        given device (``None``: nondeterministic).
-        """
-        history = _as_array("history", history, f"[t+1 >= {MIN_HISTORY}, 2, {STATE_DIM}]", 3, (2, STATE_DIM))
-        robot_futures = _as_array("robot_futures", robot_futures, f"[B, {HORIZON}, {STATE_DIM}]", 3, (HORIZON, STATE_DIM))
-        if history.shape[0] < MIN_HISTORY:
-            raise ValueError(f"history has {history.shape[0]} steps (expected at least {MIN_HISTORY})")
-        if not isinstance(n, int) or n < 1:
-            raise ValueError(f"n must be a positive integer, got {n!r}")
+    def predict(self, history, robot_futures, n: int, seed: int | None = 0) -> Prediction:
+        """``n`` sampled human action sequences for each candidate robot future, with their latent
+        values and the prior over them. ``history`` and ``robot_futures`` as for :meth:`prepare`
+        (which this leaves as it was). Deterministic for a given ``seed`` on a given device
+        (``None``: nondeterministic)."""
+        context = self._encode(history, robot_futures)
+        n = validate.integer("n", n, 1)
         generator = torch.Generator(device=self.device)
         if seed is None:
             generator.seed()
         else:
-            generator.manual_seed(seed)
+            generator.manual_seed(validate.integer("seed", seed, 0))
+        actions, latents = self._draw(context, None, n, generator)
+        return Prediction(actions, latents, context["log_p_joint"])
+
+    def _encode(self, history, robot_futures) -> dict:
+        """Validated, standardised and encoded (:meth:`BatchedRollout.encode`)."""
+        history = validate.history(history)
+        robot_futures = validate.finite_array("robot_futures", robot_futures, (None, HORIZON, STATE_DIM),
+                                              f"[B >= 1, {HORIZON}, {STATE_DIM}]")
+        if len(robot_futures) == 0:
+            raise InputError(f"robot_futures has shape {list(robot_futures.shape)} (expected [B >= 1, {HORIZON}, {STATE_DIM}])")
         m = self.model
-        context = self.sampler.encode_states(history, robot_futures)
-        latents = self.sampler.sample_latents(context, n, generator)
-        actions = self.sampler.sample(context, latents, generator=generator)
-        return Prediction(actions * m.label_std + m.label_mean, latents, context["log_p_joint"])
+        past = torch.as_tensor(history, dtype=self.dtype, device=self.device)
+        futures = torch.as_tensor(robot_futures, dtype=self.dtype, device=self.device)
+        return self.rollout.encode(m.states_to_standard(past).reshape(len(past), 2 * STATE_DIM),
+                                   m.states_to_standard(futures), m.actions_to_standard(past[-1, 1, ACCEL]))
+
+    @torch.no_grad()
+    def _draw(self, context: dict, candidates: torch.Tensor | None, n: int,
+              generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Accelerations ``[n, k, 15, 2]`` (m/s²) and latent values ``[n, k]`` for ``candidates [k]``
+        (None: all)."""
+        latents = self.rollout.sample_latents(context, n, generator, candidates)
+        actions = self.rollout.sample(context, latents, candidates, generator)
+        return self.model.actions_to_physical(actions), latents

@@ -1,5 +1,6 @@
 """Fast batched sampling of human futures for planning: one history, many candidate robot futures,
-many samples each.
+many samples each, in the model's standardised units (:class:`~trafficweaving.model.predictor.HumanPredictor`
+converts physical units).
 
 The same distribution as :meth:`CVAE.sample_actions` (given the same random numbers it returns
 the same samples, to rounding), reorganised for throughput:
@@ -23,7 +24,8 @@ from __future__ import annotations
 
 import torch
 
-from .cvae import CVAE, HORIZON, STATE_DIM
+from ..scenario import HORIZON
+from .cvae import CVAE, STATE_DIM
 from .lstm import FORGET_BIAS
 from .gmm import HOLD_MODES, LOG_SIGMA_CLIP, compose_hold_sample, split_uniform
 
@@ -34,11 +36,14 @@ def _reorder_gates(w: torch.Tensor) -> torch.Tensor:
     return torch.cat([i, f, o, 2.0 * j], dim=-1)
 
 
-class BatchedSampler:
-    """Samples ``[n, C, 15, 2]`` human action sequences (standardised units) for ``C`` candidates.
+class BatchedRollout:
+    """Batched rollouts of the CVAE's decoder: ``[n, C, 15, 2]`` human action sequences
+    (standardised units) for ``C`` candidate robot futures.
 
-    Use :meth:`encode` once per history and candidate set, then :meth:`sample` (possibly several
-    times, e.g. for the two planning stages on subsets of candidates).
+    Use :meth:`encode` once per history and candidate set, then :meth:`sample_latents` and
+    :meth:`sample` (possibly several times, e.g. for the two planning stages on subsets of
+    candidates). ``matmul_dtype``: the dtype of the decoder's matrix multiplies (default: the
+    model's; bfloat16 keeps the state and gate arithmetic in the model's dtype).
     """
 
     def __init__(self, model: CVAE, chunk_rows: int = 2048, matmul_dtype: torch.dtype | None = None):
@@ -84,26 +89,18 @@ class BatchedSampler:
             latent_init = m.latent_onehots @ self.w_init_z  # [Z, 2u]
             self.latent_gates, self.latent_init = latent_gates, latent_init
 
-    def encode_states(self, history, robot_futures) -> dict:
-        """:meth:`encode` from physical states: ``history [t+1, 2, 6]`` (robot, human) and
-        ``robot_futures [C, 15, 6]`` (arrays or tensors), standardised with the model's statistics."""
-        m = self.model
-        weights = m.feature_mean
-        standardise = lambda a: (torch.as_tensor(a, dtype=weights.dtype, device=weights.device) - m.feature_mean) / m.feature_std  # noqa: E731
-        return self.encode(standardise(history).reshape(len(history), 2 * STATE_DIM), standardise(robot_futures))
-
     @torch.no_grad()
-    def encode(self, history: torch.Tensor, robot_futures: torch.Tensor) -> dict:
-        """Per-candidate parts of the decoder for standardised ``history [t+1, 12]`` (robot, human)
-        and ``robot_futures [C, 15, 6]``: prior logits, constant gates and initial-state inputs, and
-        the robot state fed at each decoder step."""
+    def encode(self, history: torch.Tensor, robot_futures: torch.Tensor, present_action: torch.Tensor) -> dict:
+        """Per-candidate parts of the decoder for standardised ``history [t+1, 12]`` (robot, human),
+        ``robot_futures [C, 15, 6]`` and the human's present action ``present_action [2]``
+        (label-standardised): prior logits, constant gates and initial-state inputs, and the robot
+        state fed at each decoder step."""
         m = self.model
         c_count = robot_futures.shape[0]
-        robot_present, human_present = history[-1, :STATE_DIM], history[-1, STATE_DIM:]
+        robot_present = history[-1, :STATE_DIM]
         history_h = m.encode_history(history.unsqueeze(0), torch.tensor([history.shape[0] - 1], device=history.device))
         x = torch.cat([history_h.expand(c_count, -1), m.encode_robot_future(robot_futures, robot_present.expand(c_count, -1))], -1)
         robot_inputs = torch.cat([robot_present.expand(c_count, 1, -1), robot_futures[:, :-1]], dim=1)
-        present_action = (human_present[4:6] * m.feature_std[4:6] + m.feature_mean[4:6] - m.label_mean) / m.label_std
         logits = m.p_z_logits(x)
         return {
             "log_p_z": torch.log_softmax(logits, dim=-1),  # [C, N_z, K_z]

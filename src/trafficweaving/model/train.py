@@ -1,4 +1,4 @@
-"""Training the CVAE with the paper's objective and every schedule of DESIGN.md §3.
+"""Training the CVAE with the paper's objective (§III) and the authors' schedules (docs/model.md, "Training").
 
 Loss per step: ``-mean log p(y|x,z) + β·Σ_vars max(batch-mean KL(q‖p), 0.07)`` with ``k = 3``
 Gumbel-softmax samples of ``q`` per exemplar, on a batch of 32 with Gaussian noise on the
@@ -26,11 +26,11 @@ from tqdm import tqdm
 
 from ..data.trials import TrialSet
 from ..errors import InputError
-from ..scenario import STATE_NAMES
+from ..scenario import MIN_TRIAL_STEPS, STATE_NAMES
 from .checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .cvae import CVAE, Batch, CVAEConfig
-from .evaluate import evaluate_tensors, model_standardisation
-from .exemplars import ExemplarSet, Standardisation, build_exemplars, split_by_trial
+from .evaluate import evaluate_tensors
+from .exemplars import ExemplarSet, build_exemplars, split_by_trial, state_statistics
 
 
 @dataclass(frozen=True)
@@ -132,9 +132,10 @@ def make_optimizer(model: CVAE, tc: TrainConfig) -> torch.optim.Adam:
     return torch.optim.Adam([{"params": rest, "lr": tc.lr_initial}, {"params": [widths], "lr": tc.hold_width_lr}])
 
 
-class _Sampler:
-    """Batches drawn without replacement from epoch permutations that depend only on (seed, epoch),
-    so a resumed run draws exactly the batches an uninterrupted one would."""
+class _MinibatchOrder:
+    """The exemplar indices ``[batch_size]`` of each training step's minibatch, drawn without
+    replacement from epoch permutations that depend only on (seed, epoch), so a resumed run draws
+    exactly the minibatches an uninterrupted one would."""
 
     def __init__(self, n: int, batch_size: int, seed: int):
         self.n, self.batch_size, self.seed = n, batch_size, seed
@@ -159,14 +160,15 @@ class TrainResult:
     best_step: int | None = None  # with early stopping: the step whose weights were kept
 
 
-NO_EXEMPLARS = "no prediction exemplars (need human agents in trials of at least 21 steps)"
+NO_EXEMPLARS = f"no prediction exemplars (need human agents in trials of at least {MIN_TRIAL_STEPS} steps)"
 
 
 def prepare_data(trials: TrialSet, tc: TrainConfig, validation: TrialSet | None = None
-                 ) -> tuple[ExemplarSet, ExemplarSet | None, Standardisation]:
-    """Training and validation exemplars and the training-set standardisation. The validation set
-    is ``validation`` when given, else a ``validation_fraction`` split of ``trials`` by trial
-    (none when the fraction is 0)."""
+                 ) -> tuple[ExemplarSet, ExemplarSet | None, tuple[np.ndarray, np.ndarray]]:
+    """Training and validation exemplars and the training trials' state mean and std ``[6]``
+    (:func:`~trafficweaving.model.exemplars.state_statistics`, for
+    :meth:`CVAE.set_standardisation`). The validation set is ``validation`` when given, else a
+    ``validation_fraction`` split of ``trials`` by trial (none when the fraction is 0)."""
     if validation is None and tc.validation_fraction > 0:
         if len(trials) < 2:
             raise InputError(f"need at least 2 trials to split into training and validation (got {len(trials)})")
@@ -176,7 +178,7 @@ def prepare_data(trials: TrialSet, tc: TrainConfig, validation: TrialSet | None 
     val_ex = None if validation is None else build_exemplars(validation)
     if len(train_ex) == 0 or (val_ex is not None and len(val_ex) == 0):
         raise InputError(NO_EXEMPLARS)
-    return train_ex, val_ex, Standardisation.fit(trials)
+    return train_ex, val_ex, state_statistics(trials)
 
 
 STANDARDISED_MEAN_LIMIT = 3.0
@@ -188,11 +190,12 @@ def check_standardisation_fits(model: CVAE, exemplars: ExemplarSet, where: str) 
     the data, standardised with the model's statistics, must have a mean within
     ``STANDARDISED_MEAN_LIMIT`` and a std within ``STANDARDISED_STD_RANGE`` (this catches other
     units, other coordinate conventions and other time steps)."""
-    mean, std = model.feature_mean.double().cpu().numpy(), model.feature_std.double().cpu().numpy()
-    if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std > 0).all()):
+    mean, std = model.feature_mean, model.feature_std
+    if not (torch.isfinite(mean).all() and torch.isfinite(std).all() and (std > 0).all()):
         raise InputError(f"{where}: its standardisation is not finite and positive (expected a trained model)")
     rows = exemplars.streams.reshape(-1, exemplars.streams.shape[-1])
-    z = (rows[np.isfinite(rows).all(axis=1)] - mean) / std
+    recorded = torch.as_tensor(rows[np.isfinite(rows).all(axis=1)], dtype=torch.float64, device=mean.device)
+    z = model.states_to_standard(recorded).cpu().numpy()
     for k, name in enumerate(STATE_NAMES):
         m, s = float(z[:, k].mean()), float(z[:, k].std())
         low, high = STANDARDISED_STD_RANGE
@@ -237,7 +240,7 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
         known = {f.name for f in fields(TrainConfig)}
         tc = TrainConfig(**{**{k: v for k, v in payload["train_config"].items() if k in known}, "steps": tc.steps})
 
-    train_ex, val_ex, standardisation = prepare_data(trials, tc, validation)
+    train_ex, val_ex, statistics = prepare_data(trials, tc, validation)
     fingerprint = train_ex.fingerprint()
     extra = {}
     if payload is not None:
@@ -252,13 +255,9 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
         tc = replace(tc, schedule_start=extra["init"]["step"])
     else:
         torch.manual_seed(tc.seed)
-        model = CVAE(CVAEConfig.variant(variant or "cvae")).to(device)
-        with torch.no_grad():
-            for name in ("feature_mean", "feature_std", "label_mean", "label_std"):
-                getattr(model, name).copy_(torch.as_tensor(getattr(standardisation, name)))
-    standardisation = model_standardisation(model)  # fine-tuning keeps the initial model's
-    train_data = train_ex.standardised(standardisation, device)
-    val_data = None if val_ex is None else val_ex.standardised(standardisation, device)
+        model = CVAE(CVAEConfig.variant(variant or "cvae")).to(device).set_standardisation(*statistics)
+    train_data = train_ex.standardised(model)  # fine-tuning keeps the initial model's standardisation
+    val_data = None if val_ex is None else val_ex.standardised(model)
     if val_data is not None:
         val_subset = torch.randperm(len(val_data), generator=torch.Generator().manual_seed(tc.seed))[: tc.validation_exemplars].to(device)
 
@@ -268,7 +267,7 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
         optimizer.load_state_dict(payload["optimizer"])
         step, history = int(payload["step"]), [tuple(h) for h in payload.get("history", [])]
         torch.set_rng_state(payload["rng"])
-    sampler = _Sampler(len(train_data), tc.batch_size, tc.seed)
+    minibatch = _MinibatchOrder(len(train_data), tc.batch_size, tc.seed)
     count = lambda ex: "no" if ex is None else f"{len(ex)}"  # noqa: E731
     trials_of = lambda ex: 0 if ex is None else len(np.unique(ex.stream_trial))  # noqa: E731
     log(f"{'fine-tuning' if 'init' in extra else 'training'} {model.config.name}: {count(train_ex)} training / "
@@ -286,7 +285,7 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
     while step < tc.steps:
         model.train()
         optimizer.param_groups[0]["lr"] = learning_rate(tc, step)
-        batch = _noisy(train_data.batch(sampler(step).to(device)), tc.input_noise, label_noise(tc, model.config))
+        batch = _noisy(train_data.batch(minibatch(step).to(device)), tc.input_noise, label_noise(tc, model.config))
         loss, parts = loss_terms(model, batch, tc, step)
         if not torch.isfinite(loss):
             raise InputError(f"training diverged at step {step} (loss {loss.item()}; expected a smaller learning rate "

@@ -1,5 +1,5 @@
-"""The robot's candidate futures: 8 actions per 0.3 s window, 5 windows, the first one fixed, so
-``8^4 = 4096`` sequences of 15 robot states (DESIGN.md §4).
+"""The robot's candidate futures (paper §V-C): 8 actions per 0.3 s window, 5 windows over the
+15-step horizon, the first one fixed, so ``8^4 = 4096`` sequences of 15 robot states.
 
 An action is a longitudinal acceleration held for the window and a lateral target lane, steered
 to by :mod:`.steering`. State convention (as in the authors' recordings of their robot): the
@@ -14,36 +14,43 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..dynamics import robot_longitudinal
-from ..scenario import DT, LANE_CENTRE_Y
+from ..scenario import DT, HORIZON, LANE_CENTRE_Y, LANES
 from .steering import steer
 
-ACCELERATIONS = (0.0, 4.0, -3.0, -6.0)  # m/s², the longitudinal actions
-LANES = ("left", "right")  # lateral targets: the lane centres
+ACCELERATIONS = (0.0, 4.0, -3.0, -6.0)
+"""The longitudinal actions, m/s²; the lateral ones are the :data:`~trafficweaving.scenario.LANES`
+(steering to the lane centre)."""
 STEPS_PER_WINDOW = 3
-WINDOWS = 5
-HORIZON = STEPS_PER_WINDOW * WINDOWS
+"""Steps an action is held (0.3 s): the replanning period."""
+if HORIZON % STEPS_PER_WINDOW:
+    raise ImportError(f"the horizon of {HORIZON} steps is not a whole number of {STEPS_PER_WINDOW}-step windows")
+WINDOWS = HORIZON // STEPS_PER_WINDOW
+"""Action windows per candidate (5), the first one fixed."""
 
 
 @dataclass(frozen=True)
 class Action:
-    """One window's action: index ``0..7`` = ``2 · acceleration index + lane index``."""
+    """One window's action: index ``0..N_ACTIONS-1`` = ``len(LANES) · acceleration index + lane index``."""
 
     index: int
 
     @property
     def acceleration(self) -> float:
-        return ACCELERATIONS[self.index // 2]
+        return ACCELERATIONS[self.index // len(LANES)]
 
     @property
     def lane(self) -> str:
-        return LANES[self.index % 2]
+        return LANES[self.index % len(LANES)]
 
     @staticmethod
     def of(acceleration: float, lane: str) -> "Action":
-        return Action(2 * ACCELERATIONS.index(acceleration) + LANES.index(lane))
+        return Action(len(LANES) * ACCELERATIONS.index(acceleration) + LANES.index(lane))
 
 
 N_ACTIONS = len(ACCELERATIONS) * len(LANES)
+"""Actions per window (8)."""
+N_CANDIDATES = N_ACTIONS ** (WINDOWS - 1)
+"""Candidate action sequences per plan (4096): every choice for the free windows."""
 
 
 @dataclass
@@ -59,8 +66,8 @@ class Candidates:
 
 
 def action_sequences(first: int, windows: int = WINDOWS) -> np.ndarray:
-    """All ``[8^(windows-1), windows]`` action sequences starting with ``first``; the earliest free
-    window varies slowest."""
+    """All ``[N_ACTIONS^(windows-1), windows]`` action sequences starting with ``first``; the
+    earliest free window varies slowest."""
     free = np.stack(np.meshgrid(*[np.arange(N_ACTIONS)] * (windows - 1), indexing="ij"), -1).reshape(-1, windows - 1)
     return np.concatenate([np.full((len(free), 1), first), free], axis=1)
 
@@ -69,35 +76,37 @@ def rollout(present: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """Robot states ``[C, 3·W, 6]`` after ``present [6]`` under action sequences ``actions [C, W]``.
 
     The lateral boundary-value problem is solved once per distinct prefix of lane choices (at most
-    ``2^W`` solves), not once per candidate.
+    ``len(LANES)^W`` solves), not once per candidate.
     """
     present = np.asarray(present, dtype=float)
     actions = np.asarray(actions)
     c, w = actions.shape
     steps = STEPS_PER_WINDOW * w
     # longitudinal: acceleration applied from each step, Euler velocity, trapezoid position
-    acc = np.repeat(np.asarray(ACCELERATIONS)[actions // 2], STEPS_PER_WINDOW, axis=1)  # [C, steps], applied from t+k
+    acc = np.repeat(np.asarray(ACCELERATIONS)[actions // len(LANES)], STEPS_PER_WINDOW, axis=1)  # [C, steps], applied from t+k
     x, xd = robot_longitudinal(np.full(c, present[0]), np.full(c, present[2]), acc)  # at t+1..t+steps
     xdd = np.concatenate([acc[:, 1:], acc[:, -1:]], axis=1)  # stored at t+k: applied from t+k (last: held)
 
     # lateral: walk the tree of lane choices, one steering solve per distinct prefix
-    lanes = actions % 2  # [C, W]
+    base = len(LANES)  # a prefix of lane choices is coded as a number in this base
+    lanes = actions % base  # [C, W]
     lateral = np.empty((c, steps, 3))
     times = DT * np.arange(1, STEPS_PER_WINDOW + 1)
     targets = np.array([LANE_CENTRE_Y[lane] for lane in LANES])
     starts, parent = present[None, [1, 3, 5]], np.zeros(c, dtype=np.int64)  # start state of each prefix
     for k in range(w):
-        codes = parent * 2 + lanes[:, k]  # prefix code after window k
+        codes = parent * base + lanes[:, k]  # prefix code after window k
         unique, inverse = np.unique(codes, return_inverse=True)
-        path = steer(starts[unique // 2], targets[unique % 2], times)  # [P, 3, 4]
+        path = steer(starts[unique // base], targets[unique % base], times)  # [P, 3, 4]
         lateral[:, STEPS_PER_WINDOW * k: STEPS_PER_WINDOW * (k + 1)] = path[inverse, :, :3]
-        starts = np.zeros((2 * (unique.max() + 1), 3))
+        starts = np.zeros((base * (unique.max() + 1), 3))
         starts[unique] = path[:, -1, :3]
         parent = codes
     return np.stack([x, lateral[..., 0], xd, lateral[..., 1], xdd, lateral[..., 2]], axis=-1)
 
 
 def robot_candidates(present: np.ndarray, first: int) -> Candidates:
-    """The 4096 candidates from the robot's ``present [6]`` state with window 0 fixed to ``first``."""
+    """The :data:`N_CANDIDATES` candidates from the robot's ``present [6]`` state with window 0
+    fixed to ``first``."""
     actions = action_sequences(first)
     return Candidates(rollout(present, actions), actions)

@@ -1,5 +1,5 @@
 """The robot's objective: ``E[Σ_{i=1..15} γ^i J_i]`` with ``γ = 0.9`` and the paper's terms
-(DESIGN.md §4). A cost is any callable ``(robot [..., 15, 6], human [..., 15, 6]) -> [...]``
+(paper §II-B, §V-C). A cost is any callable ``(robot [..., 15, 6], human [..., 15, 6]) -> [...]``
 (broadcasting over samples and candidates, torch tensors, states ``[x, y, xd, yd, xdd, ydd]``)
 returning the discounted sum per trajectory pair; :class:`PaperCost` is the default.
 """

@@ -1,90 +1,83 @@
-"""The two-stage exhaustive planner (DESIGN.md §4) and its real-time (deadline) mode.
+"""The two-stage exhaustive planner (paper §IV and §V-C) and its real-time (deadline) mode.
 
 Stage 1 scores every candidate robot future with a few sampled human responses each; stage 2
 re-scores the best ones with many samples; the best is executed. All counts are configurable.
 With a deadline, the same two stages run anytime: stage 1 with as many samples as the measured
 speed allows, then stage 2 in rounds until the time is spent, so a plan is always returned in
-time.
+time. The human is any :class:`HumanModel` (the CVAE's is
+:class:`~trafficweaving.model.predictor.HumanPredictor`).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 import torch
 
-from ..model.cvae import CVAE, HORIZON, MIN_HISTORY, STATE_DIM
+from .. import validate
 from ..dynamics import future_states
-from ..model.sampler import BatchedSampler
-from ..scenario import DT, LANE_CENTRE_Y
-from .candidates import Candidates, robot_candidates
+from ..errors import InputError
+from ..scenario import DT, HORIZON, LANE_CENTRE_Y, STATE_NAMES
+from .candidates import N_ACTIONS, N_CANDIDATES, Candidates, robot_candidates
 from .costs import Cost
 
 
-def native_bfloat16(device: torch.device | str = "cpu") -> bool:
-    """Whether ``device`` is a CPU with native bfloat16 matrix instructions (AVX512-BF16 or AMX),
-    where bfloat16 matrix multiplies run about twice as fast as float32."""
-    if torch.device(device).type != "cpu" or not torch.backends.mkldnn.is_available():
-        return False
-    try:
-        flags = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-    return "avx512_bf16" in flags or "amx_bf16" in flags
+@runtime_checkable
+class HumanModel(Protocol):
+    """A model of the human the planner can sample from (the distribution of the human's future
+    actions given the history and the robot's future, paper §II-A), in physical units.
 
+    ``prepare`` is called once per plan with the ``history [t+1, 2, 6]`` (robot, human states at
+    steps 0..t) and the candidate ``robot_futures [C, 15, 6]``; ``sample`` then returns human
+    accelerations ``[n, len(candidates), 15, 2]`` (m/s², ``[xdd, ydd]`` at steps t+1..t+15) for
+    candidate indices ``candidates [k]`` (a tensor on :attr:`device`), drawn with ``generator``.
+    The planner's tensors live on :attr:`device` in :attr:`dtype`.
+    """
 
-def resolve_precision(precision: str, device: torch.device | str = "cpu") -> torch.dtype:
-    """``auto``: bfloat16 decoder matrix multiplies on CPUs with native bfloat16, else float32."""
-    if precision == "auto":
-        return torch.bfloat16 if native_bfloat16(device) else torch.float32
-    return {"float32": torch.float32, "bfloat16": torch.bfloat16}[precision]
-
-
-class HumanSampler(Protocol):
-    """What the planner needs of a human model: ``prepare`` once per plan with the physical
-    ``history [t+1, 2, 6]`` (robot, human) and ``robot_futures [C, 15, 6]``, then ``sample``
-    accelerations ``[n, len(candidates), 15, 2]`` (m/s²) for candidate indices ``candidates``."""
+    device: torch.device
+    dtype: torch.dtype
 
     def prepare(self, history: np.ndarray, robot_futures: np.ndarray) -> None: ...
 
     def sample(self, candidates: torch.Tensor, n: int, generator: torch.Generator) -> torch.Tensor: ...
 
 
-class CVAESampler:
-    """:class:`HumanSampler` for a :class:`CVAE`, through the fast :class:`BatchedSampler`."""
-
-    def __init__(self, model: CVAE, chunk_rows: int = 2048, matmul_dtype: torch.dtype | None = None):
-        self.model = model.eval()
-        self.batched = BatchedSampler(model, chunk_rows, matmul_dtype)
-        self.device = next(model.parameters()).device
-        self.dtype = next(model.parameters()).dtype
-        self.context: dict | None = None
-
-    def prepare(self, history: np.ndarray, robot_futures: np.ndarray) -> None:
-        self.context = self.batched.encode_states(history, robot_futures)
-
-    def sample(self, candidates: torch.Tensor, n: int, generator: torch.Generator) -> torch.Tensor:
-        latents = self.batched.sample_latents(self.context, n, generator, candidates)
-        actions = self.batched.sample(self.context, latents, candidates, generator)
-        return actions * self.model.label_std + self.model.label_mean
-
-
 @dataclass(frozen=True)
 class Budget:
-    """Sample counts of the two stages (the paper's: 16 per candidate, best 32, 1024 each)."""
+    """Sample counts of the two stages (the paper's, §V-C: 16 per candidate, best 32, 1024 each):
+    positive integers, at most :data:`~.candidates.N_CANDIDATES` finalists."""
 
     first_stage_samples: int = 16
     finalists: int = 32
     second_stage_samples: int = 1024
 
+    def __post_init__(self):
+        validate.integer("first_stage_samples", self.first_stage_samples, 1)
+        validate.integer("finalists", self.finalists, 1, N_CANDIDATES)
+        validate.integer("second_stage_samples", self.second_stage_samples, 1)
+
     @property
     def futures(self) -> int:
-        """Simulated human futures per plan for 4096 candidates."""
-        return 4096 * self.first_stage_samples + self.finalists * self.second_stage_samples
+        """Simulated human futures per plan (all :data:`~.candidates.N_CANDIDATES` candidates scored)."""
+        return N_CANDIDATES * self.first_stage_samples + self.finalists * self.second_stage_samples
+
+
+def plan_options(budget: Budget | None, deadline: float | None) -> tuple[Budget | None, float | None]:
+    """``budget`` and ``deadline`` (s) of :meth:`Planner.plan`, checked: a :class:`Budget` or
+    None, and None or a finite number of seconds > 0."""
+    if budget is not None and not isinstance(budget, Budget):
+        raise InputError(f"budget must be a Budget(first_stage_samples, finalists, second_stage_samples) or None, got {budget!r}")
+    return budget, None if deadline is None else validate.positive_seconds("deadline", deadline)
+
+
+def check_cost(cost) -> Cost:
+    """``cost``, checked to be callable (see :mod:`.costs`)."""
+    if not callable(cost):
+        raise InputError(f"cost must be a callable (robot [..., 15, 6], human [..., 15, 6]) -> [...], got {cost!r}")
+    return cost
 
 
 @dataclass
@@ -112,31 +105,36 @@ class Plan:
 
 
 class Planner:
-    """Plans robot action sequences against a human model (a :class:`CVAE`, on its device, or
-    any :class:`HumanSampler`)."""
+    """Plans robot action sequences against a :class:`HumanModel`, on its device, drawing its
+    random numbers from one generator seeded with ``seed`` (the same seed, model and calls give
+    the same plans). ``budget``: the default sample counts of :meth:`plan` (None: the paper's)."""
 
-    def __init__(self, model: CVAE | HumanSampler, budget: Budget = Budget(), seed: int = 0,
-                 device: torch.device | str | None = None, precision: str = "auto"):
-        """``precision`` (for a CVAE): the dtype of the decoder's matrix multiplies, ``float32``,
-        ``bfloat16`` (state and gate arithmetic stay float32; about twice as fast on CPUs with
-        native bfloat16, slightly different numbers: docs/planner.md measures the decisions) or
-        ``auto`` (bfloat16 where native, see :func:`resolve_precision`)."""
-        if isinstance(model, CVAE):
-            weights = next(model.parameters())
-            dtype = resolve_precision(precision, weights.device) if weights.dtype == torch.float32 else weights.dtype
-            model = CVAESampler(model, matmul_dtype=dtype)
-        self.sampler = model
-        self.device = torch.device(device) if device is not None else getattr(self.sampler, "device", torch.device("cpu"))
-        self.dtype = getattr(self.sampler, "dtype", torch.float32)
-        self.budget = budget
-        self.generator = torch.Generator(device=self.device).manual_seed(seed)
+    def __init__(self, human_model: HumanModel, budget: Budget | None = Budget(), seed: int = 0):
+        if not isinstance(human_model, HumanModel):
+            raise InputError(f"human_model must be a HumanModel (prepare, sample, device, dtype; for a CVAE: "
+                             f"HumanPredictor(cvae)), got {type(human_model).__name__}")
+        self.human_model = human_model
+        self.budget = plan_options(budget, None)[0] or Budget()
+        self.device, self.dtype = torch.device(human_model.device), human_model.dtype
+        self.generator = torch.Generator(device=self.device).manual_seed(validate.integer("seed", seed, 0))
         self.rows_per_second: float | None = None  # measured futures sampled and scored per second
+
+    def _situation(self, history, first_action) -> tuple[Candidates, torch.Tensor, torch.Tensor]:
+        """The candidates from the checked ``history [t+1, 2, 6]`` with window 0 fixed to the
+        checked ``first_action``, their states ``[C, 15, 6]`` and the human's present state ``[6]``
+        as tensors; prepares the human model for them."""
+        history = validate.history(history)
+        candidates = robot_candidates(history[-1, 0], validate.integer("first_action", first_action, 0, N_ACTIONS - 1))
+        robot = torch.as_tensor(candidates.states, dtype=self.dtype, device=self.device)
+        human_present = torch.as_tensor(history[-1, 1], dtype=self.dtype, device=self.device)
+        self.human_model.prepare(history, candidates.states)
+        return candidates, robot, human_present
 
     def _scores(self, cand: torch.Tensor, n: int, robot: torch.Tensor, human_present: torch.Tensor,
                 cost: Cost) -> tuple[torch.Tensor, torch.Tensor]:
         """Costs ``[n, len(cand)]`` of ``n`` sampled human futures for candidates ``cand``, and those futures."""
         start = time.perf_counter()
-        actions = self.sampler.sample(cand, n, self.generator)
+        actions = self.human_model.sample(cand, n, self.generator)
         human = future_states(human_present, actions.to(self.dtype))  # [n, C', 15, 6]
         scores = cost(robot[cand].unsqueeze(0), human)
         rate = n * len(cand) / max(time.perf_counter() - start, 1e-6)
@@ -153,19 +151,19 @@ class Planner:
         ``deadline`` (s), the plan returns within it: stage 1 takes as many samples per candidate
         as the measured speed allows (at most the budget's, scoring candidates in chunks and
         leaving the rest unscored if time runs out), stage 2 runs in rounds of samples until the
-        time is spent.
+        time is spent. ``keep_samples``: how many of the chosen candidate's human futures the plan
+        keeps. Bad arguments raise :class:`~trafficweaving.errors.InputError`: ``history`` must be
+        finite with at least ``MIN_HISTORY`` steps, ``first_action`` an integer in
+        ``0..N_ACTIONS-1``, ``deadline`` None or finite > 0.
         """
         clock = time.perf_counter()
-        history = np.asarray(history, dtype=np.float64)
-        if history.ndim != 3 or history.shape[1:] != (2, STATE_DIM) or history.shape[0] < MIN_HISTORY:
-            raise ValueError(f"history has shape {list(history.shape)} (expected [t+1 >= {MIN_HISTORY}, 2, {STATE_DIM}])")
+        check_cost(cost)
+        budget, deadline = plan_options(budget, deadline)
         budget = budget or self.budget
+        keep_samples = validate.integer("keep_samples", keep_samples, 0)
         left = (lambda: deadline - (time.perf_counter() - clock)) if deadline is not None else (lambda: np.inf)  # noqa: E731
         timings = {}
-        candidates = robot_candidates(history[-1, 0], first_action)
-        robot = torch.as_tensor(candidates.states, dtype=self.dtype, device=self.device)
-        human_present = torch.as_tensor(history[-1, 1], dtype=self.dtype, device=self.device)
-        self.sampler.prepare(history, candidates.states)
+        candidates, robot, human_present = self._situation(history, first_action)
         timings["candidates_and_encoding"] = time.perf_counter() - clock
         count = len(candidates)
 
@@ -201,7 +199,7 @@ class Planner:
         second_cost = total / used if used else first_cost[finalists]
         best = int(torch.argmin(second_cost))
         index = int(finalists[best])
-        human = torch.cat(kept, 0)[:keep_samples, best] if kept else torch.zeros((0, HORIZON, 6))
+        human = torch.cat(kept, 0)[:keep_samples, best] if kept else torch.zeros((0, HORIZON, len(STATE_NAMES)))
         timings["second_stage"] = time.perf_counter() - clock - sum(timings.values())
         return Plan(
             actions=candidates.actions[index], index=index, robot=candidates.states[index], candidates=candidates,
@@ -212,14 +210,15 @@ class Planner:
 
     @torch.no_grad()
     def score(self, history: np.ndarray, first_action: int, cost: Cost, indices, samples: int) -> tuple[np.ndarray, np.ndarray]:
-        """Expected costs ``[k]`` of candidates ``indices`` (of :func:`robot_candidates` with window 0
-        fixed to ``first_action``) from ``samples`` fresh human futures each, and those futures
-        ``[samples, k, 15, 6]`` (for re-scoring a choice and for figures)."""
-        candidates = robot_candidates(np.asarray(history, float)[-1, 0], first_action)
-        self.sampler.prepare(np.asarray(history, float), candidates.states)
-        robot = torch.as_tensor(candidates.states, dtype=self.dtype, device=self.device)
-        human_present = torch.as_tensor(np.asarray(history, float)[-1, 1], dtype=self.dtype, device=self.device)
-        scores, human = self._scores(torch.as_tensor(np.asarray(indices), device=self.device), samples, robot, human_present, cost)
+        """Expected costs ``[k]`` of candidates ``indices [k]`` (of :func:`robot_candidates` with
+        window 0 fixed to ``first_action``) from ``samples`` fresh human futures each, and those
+        futures ``[samples, k, 15, 6]`` (for re-scoring a choice and for figures). Arguments are
+        checked as by :meth:`plan`."""
+        check_cost(cost)
+        indices = torch.as_tensor(validate.indices("indices", indices, N_CANDIDATES), device=self.device)
+        samples = validate.integer("samples", samples, 1)
+        _, robot, human_present = self._situation(history, first_action)
+        scores, human = self._scores(indices, samples, robot, human_present, cost)
         return scores.mean(0).cpu().double().numpy(), human.cpu().double().numpy()
 
     def _rate(self) -> float:

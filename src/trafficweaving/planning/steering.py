@@ -2,7 +2,7 @@
 
 At the start of each window the robot solves the two-point boundary value problem from
 ``(y, yd, ydd)`` to ``(y_target, 0, 0)`` with free final time ``T`` and cost
-``∫_0^T 1 + yddd²/ρ dt`` (ρ = 1000) and follows the optimal trajectory (DESIGN.md §4).
+``∫_0^T 1 + yddd²/ρ dt`` (ρ = 1000) and follows the optimal trajectory (paper §V-C).
 
 For a fixed ``T`` the minimum-energy jerk is ``u(t) = b(T - t)ᵀ G(T)⁻¹ d(T)`` with
 ``b(s) = [s²/2, s, 1]``, ``G`` the controllability Gramian of the triple integrator and ``d`` the

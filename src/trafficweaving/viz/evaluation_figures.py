@@ -11,6 +11,7 @@ from matplotlib.figure import Figure
 
 from ..model.metrics import DIRECTIONS, HORIZON_STEPS, PHASES, InstanceMetrics, horizon_key
 from .figures import _save
+from .model_figures import _finish_plot
 
 
 def plot_coverage_calibration(results: dict[str, InstanceMetrics], path: str | os.PathLike,
@@ -69,9 +70,4 @@ def plot_nll_per_trial(results: dict[str, InstanceMetrics], path: str | os.PathL
     for name, values in per_trial.items():
         ax.plot(np.arange(len(trials)), values[order], marker="o", ls="none", label=name)
     ax.set_xticks(np.arange(len(trials)), [str(i) for i in trials[order]], fontsize=7)
-    ax.set_xlabel("trial id (sorted by the first model's NLL)")
-    ax.set_ylabel("mean exact NLL (nats per instance)")
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    return _save(fig, path)
+    return _finish_plot(fig, ax, "trial id (sorted by the first model's NLL)", "mean exact NLL (nats per instance)", path)

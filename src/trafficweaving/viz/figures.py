@@ -18,15 +18,13 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Rectangle
 
 from ..atomic import atomic_write
-from ..data.behaviour import compare_behaviour
-from ..data.stats import TABLE1_PAPER, left_car_in_front
+from ..data.behaviour import behaviour_samples, compare_behaviour
+from ..data.stats import TABLE1_PAPER, left_car_in_front, table1
 from ..data.trials import TrialSet
-from ..scenario import LANE_CENTRE_Y, LANE_DIVIDER_Y, ROAD_Y_MIN, TCO_VALUES
+from ..scenario import LANE_CENTRE_Y, LANE_DIVIDER_Y, ROAD_END_X, ROAD_Y_MIN, TCO_VALUES
 
 ROAD_EDGES_Y = (0.0, ROAD_Y_MIN)
 """Lines drawn as the road's outer edges (left edge, right validity limit), m."""
-CUTOFF_DRAWN_X = 0.0
-"""Where both cars must have swapped lanes (the paper's end of the road), m."""
 COLOURS = {"left": "tab:blue", "right": "tab:orange", "front": "tab:green", "behind": "tab:red",
            "sim": "tab:blue", "real": "tab:orange"}
 
@@ -45,8 +43,8 @@ def _draw_road(ax, x_range: tuple[float, float], y_min: float) -> None:
     for y in LANE_CENTRE_Y.values():
         ax.axhline(y, color="0.7", lw=0.8, ls=":")
     ax.axhline(LANE_DIVIDER_Y, color="0.45", lw=1.0, ls=(0, (8, 6)))
-    ax.axvline(CUTOFF_DRAWN_X, color="k", lw=1.5)
-    ax.text(CUTOFF_DRAWN_X, ROAD_EDGES_Y[0] + 0.15, "cutoff x = 0 ", va="bottom", ha="right", fontsize=8, clip_on=True)
+    ax.axvline(ROAD_END_X, color="k", lw=1.5)
+    ax.text(ROAD_END_X, ROAD_EDGES_Y[0] + 0.15, "cutoff x = 0 ", va="bottom", ha="right", fontsize=8, clip_on=True)
     ax.set_xlim(*x_range)
     ax.set_ylim(min(ROAD_EDGES_Y[1], y_min) - 0.5, ROAD_EDGES_Y[0] + 0.8)
 
@@ -122,7 +120,7 @@ def plot_profiles(trials: TrialSet, path: str | os.PathLike, max_trials: int = 3
         for ax, row in zip(axes, median):
             ax.plot(grid[enough], row, color=COLOURS[group], lw=2.5)
     for ax, (_, label) in zip(axes, quantities):
-        ax.axvline(CUTOFF_DRAWN_X, color="k", lw=1.2)
+        ax.axvline(ROAD_END_X, color="k", lw=1.2)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     axes[0].legend(handles=[
@@ -213,3 +211,17 @@ def plot_behaviour(sim: dict, real: dict, path: str | os.PathLike,
         ax.set_visible(False)
     fig.suptitle(f"Driving behaviour: {labels[0]} vs {labels[1]} (σ: std of {labels[1]})")
     return _save(fig, path)
+
+
+def write_dataset_figures(trials: TrialSet, out: str | os.PathLike, reference: TrialSet | None = None) -> list[Path]:
+    """Write the dataset figures into folder ``out`` (created if needed): trajectories, speed and
+    acceleration profiles, Table I, and the humans' behaviour against ``reference`` when given.
+    Returns the paths written."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [plot_trajectories(trials, out / "trajectories.png"), plot_profiles(trials, out / "profiles.png"),
+             plot_table1(table1(trials)["table1"], out / "table1.png")]
+    if reference is not None:
+        paths.append(plot_behaviour(behaviour_samples(trials, "human"), behaviour_samples(reference, "human"),
+                                    out / "behaviour_vs_reference.png"))
+    return paths

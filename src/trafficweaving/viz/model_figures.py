@@ -12,9 +12,10 @@ from matplotlib import colormaps
 from matplotlib.figure import Figure
 
 from ..data.trials import TrialSet
-from ..model.cvae import CVAE, HORIZON
 from ..dynamics import future_states
+from ..model.cvae import CVAE
 from ..model.predictor import HumanPredictor
+from ..scenario import HORIZON, MIN_HISTORY
 from .figures import _draw_road, _save
 
 
@@ -29,10 +30,10 @@ def plot_predictions(model: CVAE, trials: TrialSet, picks: list[tuple[int, int, 
     axes = fig.subplots(len(picks), 1, squeeze=False)[:, 0]
     for ax, (i, agent, t) in zip(axes, picks):
         human, robot = trials.trajectory(i, agent), trials.trajectory(i, 1 - agent)
-        if not 4 <= t <= len(human) - 1 - HORIZON:
-            raise ValueError(f"t = {t} is outside 4..{len(human) - 1 - HORIZON} for trial {i}")
+        if not MIN_HISTORY - 1 <= t <= len(human) - 1 - HORIZON:
+            raise ValueError(f"t = {t} is outside {MIN_HISTORY - 1}..{len(human) - 1 - HORIZON} for trial {i}")
         history = np.stack([robot[: t + 1], human[: t + 1]], axis=1)
-        prediction = predictor.sample(history, robot[None, t + 1:t + 1 + HORIZON], samples, seed)
+        prediction = predictor.predict(history, robot[None, t + 1:t + 1 + HORIZON], samples, seed)
         futures = future_states(torch.as_tensor(human[t]), prediction.actions[:, 0].double().cpu()).numpy()  # [n, 15, 6]
         latents = prediction.latents[:, 0].cpu().numpy()
         x_ahead = np.concatenate([robot[t:t + 1 + HORIZON, 0], human[t:t + 1 + HORIZON, 0], futures[..., 0].ravel()])
@@ -69,8 +70,14 @@ def plot_validation_curves(histories: dict[str, list[tuple[int, float]]], path: 
     for name, value in (reference or {}).items():
         ax.axhline(value, color="0.4", ls="--", lw=1)
         ax.text(ax.get_xlim()[1], value, f" {name}", va="center", fontsize=8)
-    ax.set_xlabel("training step")
-    ax.set_ylabel("validation NLL (nats per exemplar)")
+    return _finish_plot(fig, ax, "training step", "validation NLL (nats per exemplar)", path)
+
+
+def _finish_plot(fig: Figure, ax, xlabel: str, ylabel: str, path: str | os.PathLike) -> Path:
+    """Label the axes of the one-panel ``fig``, add its legend and a light grid, lay it out and
+    save it to ``path``."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()

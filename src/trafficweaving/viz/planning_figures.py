@@ -1,5 +1,5 @@
-"""Figures of the planner: the paper's Fig. 4 (the 4096 candidate robot futures) and Fig. 5 (the
-chosen sequence with its predicted human responses beside braking and accelerating alternatives)."""
+"""Figures of the planner: the paper's Fig. 4 (every candidate robot future) and Fig. 5 (the chosen
+sequence with its predicted human responses beside braking and accelerating alternatives)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..planning.candidates import Action, action_sequences, robot_candidates
+from ..planning.candidates import ACCELERATIONS, STEPS_PER_WINDOW, Action, action_sequences, robot_candidates
 from ..planning.costs import Cost
 from ..planning.planner import Planner
 from .figures import _draw_road, _save
@@ -26,7 +26,7 @@ def plot_candidates(starts: list[tuple[np.ndarray, int, str]], path: str | os.Pa
         y = np.concatenate([np.full((len(c), 1), present[1]), c.states[..., 1]], axis=1)
         _draw_road(ax, (present[0] - 5, x.max() + 5), float(y.min()))
         ax.plot(x.T, y.T, color="tab:blue", lw=0.3, alpha=0.15)
-        ax.plot(x[0, :4], y[0, :4], color="k", lw=2.0, label=f"fixed first window: {Action(first).acceleration:+.0f} m/s², {Action(first).lane} lane")
+        ax.plot(x[0, :STEPS_PER_WINDOW + 1], y[0, :STEPS_PER_WINDOW + 1], color="k", lw=2.0, label=f"fixed first window: {Action(first).acceleration:+.0f} m/s², {Action(first).lane} lane")
         ax.plot(present[0], present[1], "ko")
         ax.set_title(f"{label}: {len(c)} candidate robot futures (1.5 s)", fontsize=9)
         ax.set_ylabel("y (m)")
@@ -39,17 +39,18 @@ def plot_candidates(starts: list[tuple[np.ndarray, int, str]], path: str | os.Pa
 def plot_plan(planner: Planner, history: np.ndarray, first_action: int, cost: Cost, path: str | os.PathLike,
               samples: int = 64, scoring_samples: int = 1024) -> Path:
     """Plan from ``history [t+1, 2, 6]``; draw the chosen robot future with ``samples`` predicted
-    human responses, beside the same lane choices with braking (-6 m/s²) and with accelerating
-    (+4 m/s²) in every free window, each with its expected cost from ``scoring_samples`` futures."""
+    human responses, beside the same lane choices with the hardest braking and with accelerating
+    (the lowest and highest :data:`~trafficweaving.planning.candidates.ACCELERATIONS`) in every free
+    window, each with its expected cost from ``scoring_samples`` futures."""
     plan = planner.plan(history, first_action, cost)
     sequences = action_sequences(first_action)
-    lanes = plan.actions % 2
+    lanes = [Action(int(a)).lane for a in plan.actions[1:]]
 
     def variant(acceleration: float) -> int:
-        wanted = np.concatenate([[first_action], 2 * [0.0, 4.0, -3.0, -6.0].index(acceleration) + lanes[1:]])
+        wanted = [first_action] + [Action.of(acceleration, lane).index for lane in lanes]
         return int(np.flatnonzero((sequences == wanted).all(1))[0])
 
-    picks = [("chosen", plan.index), ("braking", variant(-6.0)), ("accelerating", variant(4.0))]
+    picks = [("chosen", plan.index), ("braking", variant(min(ACCELERATIONS))), ("accelerating", variant(max(ACCELERATIONS)))]
     costs, human = planner.score(history, first_action, cost, [i for _, i in picks], scoring_samples)
     fig = Figure(figsize=(11, 7.4))
     axes = fig.subplots(3, 1)

@@ -1,0 +1,126 @@
+"""The main job, end to end on the shipped defaults (``trafficweaving demo``, ``make demo``).
+
+1. a human–human dataset from the simulated drivers (the study's 1105 trials), its Table I next to
+   the paper's, and its figures;
+2. the authors' real human-in-the-loop recordings, when at hand, imported and compared with the
+   simulated drivers;
+3. the shipped human model: its scores on the real trials (in-sample, cross-validated and
+   calibrated, as stored in the checkpoint) and a figure of its sampled futures (paper Fig. 3);
+4. one full-budget plan of the paper's planner against that model, drawn.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Callable
+
+from .data.trials import TrialSet
+from .errors import InputError
+
+DEFAULT_HITL_DIRS = ("../shared/reference/hitl", "shared/reference/hitl")
+"""Where the demo looks for the authors' ``.jld`` recordings (relative to the working directory)."""
+DEMO_REAL_PICKS = [(2, 1, 10), (7, 1, 20), (12, 1, 25)]
+"""(trial, human agent, t) of the real trials drawn in the demo's prediction figure."""
+DEMO_SYNTHETIC_PICKS = [(0, 0, 12), (1, 1, 20)]
+"""(trial, human agent, t) drawn when no real trials are at hand."""
+
+
+def find_hitl_dir(explicit: str | Path | None) -> Path | None:
+    """The folder of the authors' human-in-the-loop ``.jld`` files: ``explicit`` if given (it must
+    be a folder), else the first of :data:`DEFAULT_HITL_DIRS` that exists, else None."""
+    if explicit is not None:
+        path = Path(explicit)
+        if not path.is_dir():
+            raise InputError(f"--hitl {path}: not a folder (expected the folder of the authors' .jld files)")
+        if not any(path.glob("*.jld")):
+            raise InputError(f"--hitl {path}: no .jld files in it (expected the authors' recordings)")
+        return path
+    return next((Path(d) for d in DEFAULT_HITL_DIRS if any(Path(d).glob("*.jld"))), None)
+
+
+def run_demo(out: str | Path, trials: int = 1105, seed: int = 0, hitl: str | Path | None = None,
+             log: Callable[[str], None] = print) -> None:
+    """Run the main job into folder ``out`` (datasets and ``figures/``), reporting through ``log``."""
+    from .data.behaviour import behaviour_samples, compare_behaviour, format_comparison
+    from .data.generate import generate_trials
+    from .data.stats import format_table1, table1
+    from .viz.figures import write_dataset_figures
+
+    out = Path(out)
+    hitl_dir = find_hitl_dir(hitl)
+    start = time.perf_counter()
+    dataset, report = generate_trials(trials, seed=seed, progress=True)
+    dataset.write_parquet(out / "human_human.parquet")
+    log(f"generated {len(dataset)} valid human–human trials in {time.perf_counter() - start:.1f} s "
+        f"({report.simulated} simulated, rejected {report.rejected}) -> {out / 'human_human.parquet'}")
+    t1 = table1(dataset)
+    log(format_table1(t1["table1"], t1["counts"]))
+
+    reference = None
+    if hitl_dir is not None:
+        from .data.hitl import read_hitl
+
+        reference = read_hitl(sorted(hitl_dir.glob("*.jld")))
+        reference.write_parquet(out / "hitl.parquet")
+        comparison = compare_behaviour(behaviour_samples(dataset, "human"), behaviour_samples(reference, "human"))
+        log(f"\nSimulated human drivers vs the {len(reference)} real human-in-the-loop trials in {hitl_dir}:")
+        log(format_comparison(comparison))
+    else:
+        log("\n(authors' human-in-the-loop recordings not found; pass --hitl DIR to compare with real drivers)")
+    for path in write_dataset_figures(dataset, out / "figures", reference):
+        log(f"wrote {path}")
+    _human_model_report(dataset, reference, out / "figures", log)
+    _plan_figure(out / "figures", log)
+
+
+def _score(value) -> str:
+    return "n/a" if value is None else f"{value:.3f}"
+
+
+def _human_model_report(dataset: TrialSet, reference: TrialSet | None, figures: Path, log: Callable[[str], None]) -> None:
+    """The shipped human model on the real trials (when at hand) and its predictions as a figure."""
+    from .model.checkpoint import default_model_path, load_checkpoint
+    from .model.evaluate import evaluate
+    from .model.exemplars import build_exemplars
+    from .viz.model_figures import plot_predictions
+
+    model, payload = load_checkpoint(default_model_path())
+    if reference is not None:
+        result = evaluate(model, build_exemplars(reference)).summary()
+        log(f"\nShipped human model ({model.config.name}: {payload.get('summary', 'see docs/model.md')}) on the "
+            f"{len(reference)} real trials: {result['instances']} instances, NLL exact {result['nll_exact']:.3f}, "
+            f"IS {_score(result['nll_is'])}, naive {result['nll_naive']:.3f} nats (the authors' model: -12.717)")
+        cv = payload.get("crossval")
+        if cv:  # trained on these trials: the honest score is the cross-validated one
+            log(f"  in-sample: the model was fine-tuned on these trials; {len(cv['folds'])}-fold cross-validated by trial "
+                f"it scores {cv['nll_exact']:.3f} (nested {cv['nested']['nll_exact']:.3f}; the authors' model "
+                f"{cv['reference']['nll_exact']:.3f} on the same folds)")
+        calibration = payload.get("calibration")
+        if calibration:
+            cov = calibration["coverage_90"]
+            log(f"  calibrated out-of-fold (latent temperature {calibration['latent_temperature']:g}, output scale "
+                f"{calibration['output_scale']:g}): NLL {calibration['nll_exact']:.3f}, 90 % position intervals 1.5 s "
+                f"ahead cover {100 * cov['x']:.0f} % (x) and {100 * cov['y']:.0f} % (y) of real positions")
+        picks, data, name = DEMO_REAL_PICKS, reference, "predictions_real.png"
+    else:
+        picks, data, name = DEMO_SYNTHETIC_PICKS, dataset, "predictions_synthetic.png"
+    log(f"wrote {plot_predictions(model.to('cpu'), data, picks, figures / name, title='shipped human model: 50 sampled futures')}")
+
+
+def _plan_figure(figures: Path, log: Callable[[str], None]) -> None:
+    """One full-budget plan with the shipped model, drawn beside braking and accelerating alternatives."""
+    from .model.checkpoint import load_model
+    from .model.predictor import HumanPredictor
+    from .planning.candidates import Action
+    from .planning.costs import PaperCost
+    from .planning.planner import Planner, example_history
+    from .scenario import LANE_CENTRE_Y
+    from .viz.planning_figures import plot_plan
+
+    planner = Planner(HumanPredictor(load_model("default"), precision="auto"))
+    path = plot_plan(planner, example_history(), Action.of(0.0, "right").index, PaperCost(goal_y=LANE_CENTRE_Y["left"]),
+                     figures / "plan.png")
+    budget = planner.budget
+    log(f"\nplanned against {budget.futures} sampled human futures (every candidate × {budget.first_stage_samples}, "
+        f"best {budget.finalists} × {budget.second_stage_samples}); wrote {path}")
