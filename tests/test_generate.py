@@ -1,7 +1,5 @@
 """The synthetic human–human generator: protocol, dynamics invariants, validity and statistics."""
 
-import glob
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +12,6 @@ from trafficweaving.scenario import (
     COLLISION_DX, COLLISION_DY, CUTOFF_X, DT, ROAD_Y_MAX, ROAD_Y_MIN, SWAP_THRESHOLD_Y,
 )
 
-HITL = sorted(glob.glob(str(Path(__file__).resolve().parents[2] / "shared/reference/hitl/*.jld")))
 
 
 @pytest.fixture(scope="module")
@@ -124,11 +121,8 @@ def test_drivers_change_lane_slowly_and_press_around_it(big):
     assert len(s["lane_change_sideways_time"]) == len(s["lane_change_x"]) >= 2 * len(big[0]) * 0.88
 
 
-@pytest.mark.skipif(not HITL, reason="the authors' HITL recordings (../shared/reference/hitl) are not present")
-def test_marginals_are_close_to_the_real_human_drivers(big):
-    from trafficweaving.data.hitl import read_hitl
-
-    comparison = compare_behaviour(behaviour_samples(big[0]), behaviour_samples(read_hitl(HITL)))
+def test_marginals_are_close_to_the_real_human_drivers(big, hitl_trials):
+    comparison = compare_behaviour(behaviour_samples(big[0]), behaviour_samples(hitl_trials))
     for name in ("speed", "long_accel", "lat_accel", "long_jerk", "lat_jerk", "lane_change_x", "long_hold",
                  "lat_hold", "long_hold_run", "lat_hold_run", "lane_change_sideways_time"):
         assert comparison[name]["wasserstein_over_std"] < 0.7, name

@@ -1,9 +1,7 @@
 """The CVAE: shapes of every variant, agreement with the authors' TensorFlow model, the mixture
 density and its sampler, the sampling API, and exemplar construction."""
 
-import glob
 import math
-import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -21,12 +19,7 @@ from trafficweaving.model.gmm import GMM, HoldMixture
 from trafficweaving.model.predictor import HumanPredictor
 from trafficweaving.scenario import HORIZON, MIN_HISTORY
 
-SHARED = Path(os.environ.get("TRAFFICWEAVING_SHARED", Path(__file__).resolve().parents[2] / "shared")) / "reference"
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-AUTHORS = SHARED / "authors_model"
-HITL = sorted(glob.glob(str(SHARED / "hitl/*.jld")))
-needs_reference = pytest.mark.skipif(not (HITL and (AUTHORS / "weights.npz").is_file()),
-                                     reason="the authors' model and recordings (../shared/reference) are not present")
 
 
 @pytest.fixture(scope="module")
@@ -41,13 +34,13 @@ def fitted_model(trials, config: CVAEConfig = CVAEConfig()) -> CVAE:
 
 
 @pytest.fixture(scope="module")
-def authors():
+def authors(authors_model_dir, hitl_trials):
     from trafficweaving.model.authors import load_authors_model
 
-    model = load_authors_model(AUTHORS / "weights.npz").double()
-    exemplars = build_exemplars(read_hitl(HITL))
+    model = load_authors_model(authors_model_dir / "weights.npz").double()
+    exemplars = build_exemplars(hitl_trials)
     data = exemplars.standardised(model)
-    reference = dict(np.load(AUTHORS / "reference_outputs.npz"))
+    reference = dict(np.load(authors_model_dir / "reference_outputs.npz"))
     return model, exemplars, data, reference
 
 
@@ -221,7 +214,6 @@ def test_hold_mixture_samples_hold_with_the_mode_weights():
 
 
 # ---------------------------------------------------------------- the authors' model
-@needs_reference
 def test_reference_instances_are_ours(authors):
     _, exemplars, _, reference = authors
     assert len(exemplars) == 963
@@ -230,7 +222,6 @@ def test_reference_instances_are_ours(authors):
     np.testing.assert_array_equal(exemplars.t, reference["t"])
 
 
-@needs_reference
 @pytest.mark.parametrize("device", DEVICES)
 def test_authors_latent_prior_and_likelihoods_match_tensorflow(authors, device):
     model, exemplars, _, reference = authors
@@ -243,7 +234,6 @@ def test_authors_latent_prior_and_likelihoods_match_tensorflow(authors, device):
     np.testing.assert_allclose(log_p_y.cpu().numpy(), reference["log_p_y_given_z_std"], atol=1e-4, rtol=0)
 
 
-@needs_reference
 def test_authors_gmm_parameters_match_tensorflow(authors):
     model, _, data, reference = authors
     batch = data.batch(torch.arange(8))
@@ -255,7 +245,6 @@ def test_authors_gmm_parameters_match_tensorflow(authors):
         np.testing.assert_allclose(value.transpose(0, 1).numpy(), reference[name], atol=1e-4, rtol=0, err_msg=name)
 
 
-@needs_reference
 def test_authors_exact_nll_is_the_papers(authors):
     model, exemplars, _, reference = authors
     result = evaluate(model, exemplars)
@@ -266,13 +255,12 @@ def test_authors_exact_nll_is_the_papers(authors):
     assert result.summary()["nll_naive"] >= result.summary()["nll_exact"] - 0.05
 
 
-@needs_reference
-def test_authors_model_in_float32_agrees_too():
+def test_authors_model_in_float32_agrees_too(authors_model_dir, hitl_trials):
     from trafficweaving.model.authors import load_authors_model
 
-    model = load_authors_model(AUTHORS / "weights.npz")
-    reference = np.load(AUTHORS / "reference_outputs.npz")
-    result = evaluate(model, build_exemplars(read_hitl(HITL)))
+    model = load_authors_model(authors_model_dir / "weights.npz")
+    reference = np.load(authors_model_dir / "reference_outputs.npz")
+    result = evaluate(model, build_exemplars(hitl_trials))
     np.testing.assert_allclose(result.nll_exact, reference["nll"], atol=2e-3)
 
 
@@ -285,9 +273,13 @@ def test_authors_import_rejects_bad_files(tmp_path):
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(InputError, match="junk.npz: not a readable .npz"):
         load_authors_model(tmp_path / "junk.npz")
-    if not (AUTHORS / "weights.npz").is_file():
-        return
-    weights = dict(np.load(AUTHORS / "weights.npz"))
+
+
+def test_authors_import_rejects_edited_weights(tmp_path, authors_model_dir):
+    from trafficweaving.errors import InputError
+    from trafficweaving.model.authors import load_authors_model
+
+    weights = dict(np.load(authors_model_dir / "weights.npz"))
     missing = {k: v for k, v in weights.items() if "corr_projection/bias" not in k}
     np.savez(tmp_path / "missing_tensor.npz", **missing)
     with pytest.raises(InputError, match="missing tensor decoder/p_y_xz/rnn/corr_projection/bias"):
@@ -325,12 +317,11 @@ def test_sampling_shapes_and_determinism(small_trials, device):
     assert a.latents.min() >= 0 and a.latents.max() < 25 and torch.isfinite(a.actions).all()
 
 
-@needs_reference
-def test_sampled_latents_follow_the_prior():
+def test_sampled_latents_follow_the_prior(authors_model_dir, hitl_files):
     from trafficweaving.model.authors import load_authors_model
 
-    trials = read_hitl(HITL[:1])
-    predictor = HumanPredictor(load_authors_model(AUTHORS / "weights.npz"))
+    trials = read_hitl(hitl_files[:1])
+    predictor = HumanPredictor(load_authors_model(authors_model_dir / "weights.npz"))
     history, futures = _situation(trials, t=10, candidates=2)
     draw = predictor.predict(history, futures, n=20_000, seed=0)
     frequencies = torch.stack([torch.bincount(draw.latents[:, j], minlength=25) for j in range(2)]).double() / 20_000
