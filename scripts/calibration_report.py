@@ -1,7 +1,7 @@
 """Write ``docs/calibration.md`` and its figures: how well the simulated human–human data matches
 the paper's Table I and the authors' real human drivers.
 
-    python scripts/calibration_report.py [--hitl ../shared/reference/hitl] [--out docs]
+    python scripts/calibration_report.py --hitl path/to/hitl [--out docs]
 
 Measures, in one run: Table I of the shipped dataset (1105 trials, seed 0), the spread of Table I
 over seeds 0..9 and at large N (20,000 trials), rejected trials by reason, and the marginal
@@ -40,7 +40,7 @@ def hold_row(direction: str, comparison: dict, sim: dict, real: dict) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--hitl", default="../shared/reference/hitl")
+    parser.add_argument("--hitl", required=True, help="folder of the authors' human-in-the-loop .jld recordings")
     parser.add_argument("--out", default="docs")
     args = parser.parse_args()
     out = Path(args.out)
@@ -60,12 +60,16 @@ def main() -> None:
     lines = [
         "# Calibration of the simulated human drivers",
         "",
-        "Made by `python scripts/calibration_report.py` (numbers below are from its last run).",
+        "Made by `python scripts/calibration_report.py --hitl hitl/` (`hitl/` holding the authors' 30 "
+        "human-in-the-loop recordings, `.jld`); the numbers below are from its last run. The simulator follows "
+        "the study protocol of the paper's §V-A (Data Collection): 18 initial conditions (Δv ∈ {−2, 0, +2} m/s, "
+        "crossover time t_co ∈ {1, 2, 3} s, which car starts in which lane), the car ahead starting at "
+        "x = −145 m, 19 pairs of drivers.",
         "",
         "## Table I",
         "",
         "Fraction (%) of human–human trials in which the car that started in the left lane passes in front.",
-        f"Shipped dataset: `trafficweaving generate --trials 1105 --seed 0` ({seconds:.2f} s here); "
+        f"Shipped dataset: `trafficweaving generate --trials 1105 --seed 0` ({seconds:.2f} s on 2 CPU cores); "
         "seeds 0–9: the same command with other seeds; 20k: 20,000 trials (the model's own probabilities, "
         "sampling noise ≈ ±0.7 pp).",
         "",
@@ -86,7 +90,10 @@ def main() -> None:
         f"seeds 0–9: {', '.join(f'{d:.1f}' for d in max_devs)} pp "
         f"({sum(d <= 5 for d in max_devs)} of 10 within 5 pp); 20k trials: {100 * table1_max_deviation(large):.1f} pp.",
         "",
-        f"Rejected while generating the shipped dataset (authors' validity rules): {report.simulated - 1105} of "
+        "Rejected while generating the shipped dataset (the authors' validity rules, `scenario.check_validity`: "
+        "never |Δx| < 4.5 m and |Δy| < 1.8 m at once; both cars on the road, −8 ≤ y ≤ −1 m, and each on the "
+        "other side of y = −4 m from where it started before reaching x = 2 m, the cutoff line, which both must "
+        f"reach; valid trials are cut where the first car reaches it): {report.simulated - 1105} of "
         f"{report.simulated} simulated ({100 * (report.simulated - 1105) / report.simulated:.1f} %): "
         + ", ".join(f"{k} {v}" for k, v in report.rejected.items()) + ".",
         "",
@@ -95,7 +102,7 @@ def main() -> None:
         "## Marginal behaviour against the real human drivers",
         "",
         f"Simulated humans (both cars of the 1105 trials) against the human car of the {len(reference)} real "
-        "human-in-the-loop trials in `../shared/reference/hitl` (a person driving against the authors' planner). "
+        "human-in-the-loop trials recorded by the authors (a person driving against their planner). "
         "W: 1-D Wasserstein distance; W / std real: the same in units of the real sample's spread.",
         "",
         format_comparison(comparison),

@@ -4,7 +4,7 @@ paper's Fig. 3 for the first and last model and the validation curves (``docs/fi
 
     python scripts/model_report.py --data synthetic_4000.parquet --real hitl.parquet --table model_table.md \
         --model "cvae (shipped)=src/trafficweaving/model/default_cvae.pt" ... \
-        --model "authors=authors:../shared/reference/authors_model/weights.npz" --figures
+        --model "authors=authors:path/to/weights.npz" --figures
 
 The held-out split is the validation split ``trafficweaving train`` makes of ``--data`` (80/20 by
 trial, seed 0). Every number is measured in this run.
@@ -32,7 +32,7 @@ def main() -> None:
     parser.add_argument("--data", required=True, help="the synthetic training dataset")
     parser.add_argument("--real", required=True, help="imported real trials (trafficweaving import hitl)")
     parser.add_argument("--model", action="append", required=True, metavar="NAME=SPEC")
-    parser.add_argument("--out", default="docs")
+    parser.add_argument("--out", default="variants")
     parser.add_argument("--table", default="model_table.md", help="file name of the table, in --out")
     parser.add_argument("--figures", action="store_true", help="also draw Fig. 3 and the validation curves")
     args = parser.parse_args()

@@ -3,7 +3,7 @@
 minADE/minFDE) with figures in ``<report folder>/figures``.
 
     python scripts/real_humans_report.py --data hitl.parquet --out docs/real_humans.md \\
-        --model shipped=default --model authors=authors:../shared/reference/authors_model/weights.npz
+        --model shipped=default --model authors=authors:path/to/weights.npz
 
 ``--data`` is any dataset with human agents (e.g. ``trafficweaving import hitl`` of the authors'
 30 human-in-the-loop trials); ``--model NAME=SPEC`` takes what ``trafficweaving evaluate --model``
