@@ -417,6 +417,7 @@ def _add_schedule_options(p, steps: int) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from .model.predictor import PRECISIONS
+    from .planning.candidates import N_CANDIDATES
 
     parser = _Parser(prog="trafficweaving", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -514,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=POSITIVE, default=3)
     p.add_argument("--deadline", type=_float_in(0, 3600), help="real-time mode: return within this many seconds")
     p.add_argument("--first-stage-samples", type=POSITIVE, default=16)
-    p.add_argument("--finalists", type=POSITIVE, default=32)
+    p.add_argument("--finalists", type=_int_at_least(1, N_CANDIDATES), default=32)
     p.add_argument("--second-stage-samples", type=POSITIVE, default=1024)
     p.add_argument("--precision", choices=PRECISIONS, default="auto",
                    help="decoder matrix multiplies; auto: bfloat16 on CPUs with native bfloat16, else float32")

@@ -86,7 +86,7 @@ def _common_source(paths: list[Path]) -> Path | None:
 def _read_file(path: Path) -> np.ndarray:
     """Both cars' states from one file, ``[2, T, 6]`` float64, validated."""
     if not path.is_file():
-        raise InputError(f"{path}: no such file (expected {EXPECTED})")
+        raise InputError(f"{path}: {'is a folder' if path.is_dir() else 'no such file'} (expected {EXPECTED})")
     if not h5py.is_hdf5(path):
         raise InputError(f"{path}: not an HDF5 file (expected {EXPECTED})")
     try:
