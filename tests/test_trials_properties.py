@@ -120,7 +120,7 @@ def _retyped(values: list, kind: str) -> tuple[list, pa.DataType]:
         "large_string": (lambda v: str(v), pa.large_string()),
         "float64": (lambda v: number(v) + 0.25, pa.float64()),
         "float32": (lambda v: number(v), pa.float32()),
-        "int64": (lambda v: int(number(v)) if math.isfinite(number(v)) else 0, pa.int64()),
+        "int64": (lambda v: int(number(v)) if abs(number(v)) < 2**62 else 0, pa.int64()),  # NaN, inf, huge: 0
         "uint8": (lambda v: int(abs(number(v))) % 256 if math.isfinite(number(v)) else 0, pa.uint8()),
         "bool": (lambda v: bool(v), pa.bool_()),
         "list": (lambda v: [v], None),
