@@ -116,7 +116,7 @@ def _parse(argv: list[str]) -> tuple[int, str, object]:
             return int(exc.code or 0), err.getvalue(), None
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=150, deadline=None, derandomize=True)
 @given(option=st.sampled_from(sorted(INTEGER_OPTIONS)),
        value=st.one_of(st.integers(min_value=-2**70, max_value=2**70), st.floats(allow_nan=True, allow_infinity=True),
                        st.text(max_size=12)))
@@ -134,7 +134,7 @@ def test_integer_options_accept_exactly_their_range(option, value):
         assert code == 2 and err.count("\n") == 1 and option in err
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=150, deadline=None, derandomize=True)
 @given(value=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12)))
 def test_real_valued_options_accept_only_finite_numbers_in_their_interval(value):
     for option, prefix, inside in (

@@ -19,7 +19,7 @@ from trafficweaving.data.trials import INT32_MAX, INT32_MIN, METADATA_KEY, ROLES
 from trafficweaving.errors import InputError
 from trafficweaving.scenario import LANES, MIN_TRIAL_STEPS
 
-SETTINGS = settings(max_examples=50, deadline=None, database=None,
+SETTINGS = settings(max_examples=50, deadline=None, database=None, derandomize=True,  # the same examples in every CI run
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 FINITE = st.floats(allow_nan=False, allow_infinity=False)
