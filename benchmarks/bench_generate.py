@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from trafficweaving.data.drivers import DriverModel, DriverStyles
-from trafficweaving.data.generate import generate_trials, schedule, simulate_trials
+from trafficweaving.sim.drivers import DriverModel, DriverStyles
+from trafficweaving.sim.generate import generate_trials, schedule, simulate_trials
 
 
 def main() -> None:

@@ -32,7 +32,7 @@ import time
 import numpy as np
 import torch
 
-from trafficweaving.data.generate import generate_trials
+from trafficweaving.sim.generate import generate_trials
 from trafficweaving.dynamics import future_states
 from trafficweaving.errors import InputError
 from trafficweaving.model.checkpoint import load_model

@@ -18,7 +18,7 @@ import time
 
 import torch
 
-from trafficweaving.data.generate import generate_trials
+from trafficweaving.sim.generate import generate_trials
 from trafficweaving.model.cvae import CVAE
 from trafficweaving.model.train import TrainConfig, _MinibatchOrder, _noisy, loss_terms, prepare_data
 

@@ -16,8 +16,8 @@ import dataclasses
 import numpy as np
 from scipy.optimize import minimize
 
-from trafficweaving.data.drivers import DriverModel
-from trafficweaving.data.generate import generate_trials
+from trafficweaving.sim.drivers import DriverModel
+from trafficweaving.sim.generate import generate_trials
 from trafficweaving.data.stats import TABLE1_PAPER, table1
 
 FITTED = ("w_gap", "lookahead", "lane_bias_right", "trial_noise_sd")

@@ -18,7 +18,7 @@ import numpy as np
 
 from trafficweaving.viz.figures import write_dataset_figures
 from trafficweaving.data.behaviour import behaviour_samples, compare_behaviour, format_comparison
-from trafficweaving.data.generate import generate_trials
+from trafficweaving.sim.generate import generate_trials
 from trafficweaving.data.hitl import read_hitl
 from trafficweaving.data.stats import TABLE1_PAPER, table1, table1_max_deviation
 

@@ -1,6 +1,6 @@
 """Helpers shared by the human-model test modules (test_model, test_train, test_evaluate_metrics)."""
 
-from trafficweaving.data.generate import generate_trials
+from trafficweaving.sim.generate import generate_trials
 from trafficweaving.data.trials import TrialSet
 
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from trafficweaving.data.behaviour import behaviour_samples, compare_behaviour
-from trafficweaving.data.drivers import FULL_THROTTLE, HARD_BRAKE, MAX_LATERAL_ACCEL
-from trafficweaving.data.generate import generate_trials, schedule
+from trafficweaving.sim.drivers import FULL_THROTTLE, HARD_BRAKE, MAX_LATERAL_ACCEL
+from trafficweaving.sim.generate import generate_trials, schedule
 from trafficweaving.data.stats import TABLE1_PAPER, left_car_in_front, table1
 from trafficweaving.scenario import (
     COLLISION_DX, COLLISION_DY, CUTOFF_X, DT, ROAD_Y_MAX, ROAD_Y_MIN, SWAP_THRESHOLD_Y,

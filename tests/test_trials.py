@@ -10,7 +10,7 @@ import pytest
 
 from trafficweaving.data import trials as trials_module
 from trafficweaving.data.behaviour import behaviour_samples, compare_behaviour, summarise
-from trafficweaving.data.generate import generate_trials
+from trafficweaving.sim.generate import generate_trials
 from trafficweaving.data.stats import table1, table1_max_deviation
 from trafficweaving.data.trials import (
     METADATA_KEY,

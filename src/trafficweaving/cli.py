@@ -103,7 +103,7 @@ def _fmt(value) -> str:
 
 
 def cmd_generate(args) -> None:
-    from .data.generate import generate_trials
+    from .sim.generate import generate_trials
 
     out = check_output_file(args.out, "--out")
     start = time.perf_counter()

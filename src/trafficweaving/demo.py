@@ -43,7 +43,7 @@ def run_demo(out: str | Path, trials: int = 1105, seed: int = 0, hitl: str | Pat
              log: Callable[[str], None] = print) -> None:
     """Run the main job into folder ``out`` (datasets and ``figures/``), reporting through ``log``."""
     from .data.behaviour import behaviour_samples, compare_behaviour, format_comparison
-    from .data.generate import generate_trials
+    from .sim.generate import generate_trials
     from .data.stats import format_table1, table1
     from .viz.figures import write_dataset_figures
 

@@ -13,22 +13,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtri
-from tqdm import tqdm
 
-from ..dynamics import trapezoid_step
-from ..scenario import (
-    DT,
-    RECORD_END_X,
-    VALIDITY_REASONS,
-    check_validity,
-    study_initial_conditions,
-)
-from .drivers import DriverAgents, DriverModel, DriverStyles, stratified_uniform
-from .trials import TrialSet
-
-MAX_STEPS = 110
-"""Longest simulated recording (11 s); trials end earlier once both cars pass ``RECORD_END_X``."""
-
+from ..scenario import DT, VALIDITY_REASONS, check_validity, study_initial_conditions
+from .drivers import DriverModel, DriverStyles, stratified_uniform
+from .humans import SyntheticDrivers
+from .world import run_episodes
+from ..data.trials import TrialSet
 
 @dataclass
 class GenerationReport:
@@ -72,7 +62,7 @@ def stratified_moods(ic_index: np.ndarray, rng: np.random.Generator) -> np.ndarr
 
 def simulate_trials(ic_index: np.ndarray, pair: np.ndarray, styles: DriverStyles, model: DriverModel,
                     rng: np.random.Generator, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Simulate human–human trials with both cars driven by :class:`DriverAgents`.
+    """Simulate human–human trials on the world with both cars driven by :class:`SyntheticDrivers`.
 
     ``ic_index``, ``pair``: ``[m]`` initial condition and driver pair of each trial; ``styles``:
     the traits of all drivers (driver ``2p`` is car A of pair ``p``, ``2p + 1`` car B).
@@ -80,28 +70,9 @@ def simulate_trials(ic_index: np.ndarray, pair: np.ndarray, styles: DriverStyles
     """
     ics = study_initial_conditions()
     start = np.stack([ics[i].start_states() for i in ic_index])  # [m, 2, 6]
-    lanes = np.array([[ics[i].lane_a, ics[i].lane_b] for i in ic_index])
     moods = stratified_moods(ic_index, rng)
-    cars = [
-        DriverAgents(model, styles.take(2 * pair + k), start[:, k], lanes[:, k], rng, mood=moods[:, k])
-        for k in (0, 1)
-    ]
-    m = len(ic_index)
-    states = np.empty((m, 2, MAX_STEPS, 6))
-    states[:, :, 0] = start
-    lengths = np.full(m, MAX_STEPS)
-    steps = range(1, MAX_STEPS)
-    for t in tqdm(steps, desc="simulating", unit="step", disable=not progress, leave=False):
-        now = states[:, :, t - 1]
-        acc = np.stack([cars[0].act(now[:, 0], now[:, 1]), cars[1].act(now[:, 1], now[:, 0])], axis=1)
-        x, xd = trapezoid_step(now[..., 0], now[..., 2], now[..., 4], acc[..., 0])
-        y, yd = trapezoid_step(now[..., 1], now[..., 3], now[..., 5], acc[..., 1])
-        states[:, :, t] = np.stack([x, y, xd, yd, acc[..., 0], acc[..., 1]], axis=-1)
-        done = (states[:, :, t, 0] > RECORD_END_X).all(axis=1) & (lengths == MAX_STEPS)
-        lengths[done] = t + 1
-        if (lengths < MAX_STEPS).all():
-            break
-    return states[:, :, : int(lengths.max())], lengths
+    cars = [SyntheticDrivers(styles.take(2 * pair + k), model, mood=moods[:, k]) for k in (0, 1)]
+    return run_episodes(start, cars, rng, progress=progress).recorded()
 
 
 def generate_trials(n_trials: int, seed: int = 0, model: DriverModel | None = None, pairs: int = 19,
