@@ -4,3 +4,7 @@ A runnable, modern implementation of Schmerling, Leung, Vollprecht and Pavone, I
 """
 
 __version__ = "0.1.0"
+
+from gymnasium.envs.registration import register as _register
+
+_register(id="TrafficWeaving-v0", entry_point="trafficweaving.envs.traffic_weaving:TrafficWeavingEnv")

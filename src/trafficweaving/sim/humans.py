@@ -1,15 +1,35 @@
 """Human agents: who drives the human car in a simulation (:class:`~trafficweaving.sim.world.Agent`).
 
 * :class:`SyntheticDrivers`: the simulated drivers of :mod:`~trafficweaving.sim.drivers`
-  (intermittent control, sampled driving styles), batched over episodes.
+  (intermittent control, sampled driving styles), batched over episodes, with given styles (the
+  dataset generator); :class:`SampledDrivers` draws the styles and moods at reset (closed loop).
+* :class:`ModelDriver`: a human model (the CVAE of paper §IV) as a driver: every 0.3 s it samples
+  its next 3 accelerations, conditioned on its history and on the robot's future as it guesses
+  it (:func:`constant_acceleration_future`) or as the simulation tells it (``robot_future``).
+* :class:`ReplayDriver`: a recorded human (non-reactive), e.g. the authors' human-in-the-loop
+  trials (``docs/real_humans.md``).
+
+:func:`human_agent` builds one from a spec string (:data:`HUMAN_SPECS`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
-from ..scenario import lane_of
+from .. import validate
+from ..data.trials import TrialSet, load_trials
+from ..dynamics import future_states
+from ..errors import InputError
+from ..model.checkpoint import load_model
+from ..model.cvae import CVAE
+from ..model.predictor import HumanPredictor
+from ..scenario import DT, HORIZON, MIN_HISTORY, lane_of
 from .drivers import DriverAgents, DriverModel, DriverStyles
+from .world import Agent
+
+HUMAN_SPECS = "synthetic, model:SPEC (SPEC: default, a checkpoint path or authors:PATH), replay:FILE or replay:FILE#K"
+"""The forms :func:`human_agent` accepts, as messages print them."""
 
 
 class SyntheticDrivers:
@@ -28,3 +48,175 @@ class SyntheticDrivers:
 
     def act(self, history: np.ndarray) -> np.ndarray:
         return self.drivers.act(history[:, self.me, -1], history[:, 1 - self.me, -1])
+
+
+class SampledDrivers(SyntheticDrivers):
+    """:class:`SyntheticDrivers` for closed loop: at each reset, one driver style per episode is
+    drawn from ``rng`` (:meth:`DriverStyles.sample` of ``model``, ``m`` drivers) and then each
+    episode's mood (standard normal), so a run is reproducible from the rng alone."""
+
+    def __init__(self, model: DriverModel | None = None):
+        super().__init__(styles=None, model=model)
+
+    def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
+        self.styles = DriverStyles.sample(self.model, len(start), rng)
+        super().reset(rng, start, me)
+
+
+def constant_acceleration_future(present: np.ndarray) -> np.ndarray:
+    """The robot's future as the human guesses it: its states ``[..., 15, 6]`` at steps
+    t+1..t+15 when it holds its present acceleration, from its present state ``present [..., 6]``
+    (m, m/s, m/s²; trapezoid rule, :func:`~trafficweaving.dynamics.future_states`)."""
+    present = np.asarray(present, dtype=float)
+    return future_states(present, np.repeat(present[..., None, 4:6], HORIZON, axis=-2))
+
+
+class ModelDriver:
+    """A human model as a driver, batched over ``m`` episodes (one model call per episode).
+
+    Every :attr:`BLOCK` steps (0.3 s) it samples one 15-step future of its accelerations from
+    ``model`` (:class:`~trafficweaving.model.predictor.HumanPredictor`, ``precision`` as there),
+    conditioned on both cars' history and on the robot's future states, and then executes that
+    sample's first 3 accelerations. The first sample is drawn once ``MIN_HISTORY`` steps exist;
+    before that it holds its present acceleration. Each episode draws from its own
+    ``torch.Generator``, seeded at reset from the rng, so a run is reproducible from its seed.
+
+    The robot's future: by default the guess :func:`constant_acceleration_future` (the robot holds
+    its present acceleration). With ``robot_plan=True`` the simulation tells it the robot's plan:
+    before *every* :meth:`act` it sets :attr:`robot_future` to the robot's planned states
+    ``[m, 15, 6]`` at steps t+1..t+15 (e.g. the planner's ``Plan.robot``); :meth:`act` consumes
+    and clears it, and raises RuntimeError when it is needed and not set.
+    """
+
+    BLOCK = 3
+    """Steps executed from each sample (0.3 s)."""
+
+    def __init__(self, model: CVAE, robot_plan: bool = False, precision: str = "float32"):
+        self.predictor = HumanPredictor(model, precision)
+        self.robot_plan = robot_plan
+        self.robot_future: np.ndarray | None = None
+        self.me = 1
+        self.generators: list[torch.Generator] = []
+        self.block = np.zeros((0, self.BLOCK, 2))  # accelerations [m, 3, 2] of the current block
+        self.left = 0  # accelerations of the block still to execute
+
+    def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
+        self.me = me
+        seeds = rng.integers(0, 2**63, size=len(start))
+        self.generators = [torch.Generator(device=self.predictor.device).manual_seed(int(s)) for s in seeds]
+        self.robot_future, self.left = None, 0
+
+    def conditioning(self, history: np.ndarray,
+                     robot_future: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """What the model is conditioned on for the world's ``history [m, 2, t+1, 6]``: the
+        robot-first histories ``[m, t+1, 2, 6]`` and the robot's future states ``[m, 15, 6]``
+        (``robot_future`` when given, else :func:`constant_acceleration_future`)."""
+        ordered = history[:, [1 - self.me, self.me]].transpose(0, 2, 1, 3)
+        if robot_future is None:
+            return ordered, constant_acceleration_future(ordered[:, -1, 0])
+        m = len(history)
+        return ordered, validate.finite_array("robot_future", robot_future, (m, HORIZON, 6), f"[{m}, {HORIZON}, 6]")
+
+    def act(self, history: np.ndarray) -> np.ndarray:
+        robot_future, self.robot_future = self.robot_future, None
+        if history.shape[2] < MIN_HISTORY:
+            return history[:, self.me, -1, 4:6].copy()
+        if self.left == 0:
+            if self.robot_plan and robot_future is None:
+                raise RuntimeError("ModelDriver(robot_plan=True) needs robot_future [m, 15, 6] set before every act")
+            self.block = self._sample(*self.conditioning(history, robot_future if self.robot_plan else None))
+            self.left = self.BLOCK
+        self.left -= 1
+        return self.block[:, self.BLOCK - 1 - self.left].copy()
+
+    def _sample(self, histories: np.ndarray, robot_futures: np.ndarray) -> np.ndarray:
+        """The next block's accelerations ``[m, 3, 2]`` (m/s²), one model sample per episode."""
+        blocks = []
+        for history, future, generator in zip(histories, robot_futures, self.generators):
+            self.predictor.prepare(history, future[None])
+            blocks.append(self.predictor.sample([0], 1, generator)[0, 0, : self.BLOCK])
+        return torch.stack(blocks).double().cpu().numpy()
+
+
+class ReplayDriver:
+    """A recorded human, non-reactive: replays the accelerations ``[xdd, ydd]`` of the agent
+    labelled ``human`` (the first one where both are) of a recorded trial, from its step 1 on;
+    past the end of the recording it keeps its last recorded acceleration.
+
+    ``trials``: the recordings (time step ``DT``); only trials with a human agent are kept, their
+    ids in :attr:`trial_ids`. ``trial``: the trial id (the file's ``trial`` column) every episode
+    replays; None: each episode's trial is drawn uniformly from :attr:`trial_ids` with the rng at
+    reset (:attr:`played` tells which). The car follows the recording only from the recording's
+    start: start such episodes from :meth:`start_states`; to replay several trials so, set
+    :attr:`trial` to one of :attr:`trial_ids` before each episode's reset.
+    """
+
+    def __init__(self, trials: TrialSet, trial: int | None = None):
+        self.name = str(trials.source_path) if trials.source_path is not None else "the trial set"
+        trials.require_dt(DT, "the simulation")
+        with_human = (trials.roles == "human").any(axis=1)
+        if not with_human.any():
+            raise InputError(f"{self.name}: no agent is labelled human (expected a dataset with an agent labelled human)")
+        self.trials = trials.subset(np.flatnonzero(with_human))
+        self.trial_ids = self.trials.trial_ids
+        self.human = np.argmax(self.trials.roles == "human", axis=1)  # [n] the replayed agent of each trial
+        self.trial = None if trial is None else int(self.trial_ids[self._rows(trial)])
+        self.played = np.zeros(0, dtype=self.trial_ids.dtype)
+        self.accelerations = np.zeros((0, 1, 2))
+
+    def _rows(self, trial) -> np.ndarray:
+        """Positions in :attr:`trials` of trial ids ``trial`` (an id or an array of ids)."""
+        trial = np.asarray(trial)
+        match = self.trial_ids == trial[..., None]  # [..., n]
+        found = match.any(axis=-1)
+        if trial.dtype.kind not in "iu" or not found.all():
+            bad = trial[~found].flat[0] if trial.dtype.kind in "iu" else trial
+            raise InputError(f"{self.name}: no trial {bad} with an agent labelled human (expected one of the "
+                             f"{len(self.trial_ids)} trial ids {self.trial_ids.min()}..{self.trial_ids.max()} with one)")
+        return match.argmax(axis=-1)
+
+    def start_states(self, trial, me: int = 1) -> np.ndarray:
+        """The recorded start of both cars of trial id ``trial`` (an id, or ``[m]`` ids), ``[2, 6]``
+        (``[m, 2, 6]``), with the recorded human as car ``me`` and the other car as car ``1 - me``
+        (the default ``me = 1``: robot first)."""
+        me = validate.integer("me", me, 0, 1)
+        rows = self._rows(trial)
+        human = self.human[rows, None]
+        cars = np.concatenate([1 - human, human] if me == 1 else [human, 1 - human], axis=-1)  # [..., 2]
+        return self.trials.states[rows[..., None], cars, 0].copy()
+
+    def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
+        m = len(start)
+        rows = (np.full(m, self._rows(self.trial)) if self.trial is not None
+                else rng.integers(len(self.trial_ids), size=m))
+        self.played = self.trial_ids[rows]
+        steps = np.minimum(np.arange(self.trials.states.shape[2]), self.trials.lengths[rows, None] - 1)  # [m, T]
+        self.accelerations = self.trials.states[rows[:, None], self.human[rows, None], steps, 4:6]  # [m, T, 2]
+
+    def act(self, history: np.ndarray) -> np.ndarray:
+        return self.accelerations[:, min(history.shape[2], self.accelerations.shape[1] - 1)].copy()
+
+
+def _replay_target(target: str) -> tuple[str, int | None]:
+    """``FILE`` or ``FILE#K`` (``K`` a non-negative integer trial id) as ``(FILE, K or None)``."""
+    path, _, trial = target.rpartition("#")
+    return (path, int(trial)) if path and trial.isdigit() else (target, None)
+
+
+def human_agent(spec: str, device: torch.device | str = "cpu", robot_plan: bool = False) -> Agent:
+    """The human agent of ``spec`` (:data:`HUMAN_SPECS`): ``synthetic`` (:class:`SampledDrivers`),
+    ``model:SPEC`` (:class:`ModelDriver` of :func:`~trafficweaving.model.checkpoint.load_model`'s
+    ``SPEC``, on ``device``; ``robot_plan`` as there) or ``replay:FILE[#K]`` (:class:`ReplayDriver`
+    of the Parquet dataset ``FILE``, trial id ``K`` or drawn per episode). InputError for an
+    unknown spec, a missing or invalid file, or ``robot_plan`` with a human that is not a model."""
+    kind, _, target = spec.partition(":")
+    if robot_plan and kind != "model":
+        raise InputError(f"robot_plan applies only to model:SPEC humans, got human {spec!r}")
+    if spec == "synthetic":
+        return SampledDrivers()
+    if kind == "model" and target:
+        return ModelDriver(load_model(target, device), robot_plan=robot_plan)
+    if kind == "replay" and target:
+        path, trial = _replay_target(target)
+        return ReplayDriver(load_trials(path), trial)
+    raise InputError(f"human {spec!r} is unknown (expected one of: {HUMAN_SPECS})")

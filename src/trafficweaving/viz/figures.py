@@ -36,7 +36,7 @@ def _save(fig: Figure, path: str | os.PathLike, dpi: int = 120) -> Path:
     return Path(path)
 
 
-def _draw_road(ax, x_range: tuple[float, float], y_min: float) -> None:
+def draw_road(ax, x_range: tuple[float, float], y_min: float) -> None:
     """Road edges, lane centres, divider and cutoff on an (x, y) axis."""
     for y in ROAD_EDGES_Y:
         ax.axhline(y, color="0.3", lw=1.2)
@@ -72,7 +72,7 @@ def plot_trajectories(trials: TrialSet, path: str | os.PathLike, max_trials: int
             traj = trials.trajectory(i, agent)
             ls = "-" if trials.start_lanes[i, agent] == "left" else "--"
             ax.plot(traj[:, 0], traj[:, 1], color=colour, ls=ls, lw=0.8, alpha=alpha)
-    _draw_road(ax, (min(x_min, -10.0) - 2.0, max(x_max, 5.0) + 2.0), np.nanmin(trials.states[picked, ..., 1]))
+    draw_road(ax, (min(x_min, -10.0) - 2.0, max(x_max, 5.0) + 2.0), np.nanmin(trials.states[picked, ..., 1]))
     n_left = int(front[picked].sum())
     ax.legend(handles=[
         Line2D([], [], color=COLOURS["left"], label=f"left-lane car passed in front ({n_left})"),

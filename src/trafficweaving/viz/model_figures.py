@@ -16,7 +16,7 @@ from ..dynamics import future_states
 from ..model.cvae import CVAE
 from ..model.predictor import HumanPredictor
 from ..scenario import HORIZON, MIN_HISTORY
-from .figures import _draw_road, _save
+from .figures import draw_road, _save
 
 
 def plot_predictions(model: CVAE, trials: TrialSet, picks: list[tuple[int, int, int]], path: str | os.PathLike,
@@ -39,7 +39,7 @@ def plot_predictions(model: CVAE, trials: TrialSet, picks: list[tuple[int, int, 
         x_ahead = np.concatenate([robot[t:t + 1 + HORIZON, 0], human[t:t + 1 + HORIZON, 0], futures[..., 0].ravel()])
         # the last 2 s of history and everything predicted
         x_behind = min(robot[max(t - 20, 0), 0], human[max(t - 20, 0), 0])
-        _draw_road(ax, (x_behind - 3, x_ahead.max() + 5), float(futures[..., 1].min()))
+        draw_road(ax, (x_behind - 3, x_ahead.max() + 5), float(futures[..., 1].min()))
         for k in range(samples):
             colour = cmap(latents[k] / max(model.config.latent_values - 1, 1))
             ax.plot(np.r_[human[t, 0], futures[k, :, 0]], np.r_[human[t, 1], futures[k, :, 1]], color=colour, lw=0.8, alpha=0.8)

@@ -12,7 +12,7 @@ from matplotlib.figure import Figure
 from ..planning.candidates import ACCELERATIONS, STEPS_PER_WINDOW, Action, action_sequences, robot_candidates
 from ..planning.costs import Cost
 from ..planning.planner import Planner
-from .figures import _draw_road, _save
+from .figures import draw_road, _save
 
 
 def plot_candidates(starts: list[tuple[np.ndarray, int, str]], path: str | os.PathLike) -> Path:
@@ -24,7 +24,7 @@ def plot_candidates(starts: list[tuple[np.ndarray, int, str]], path: str | os.Pa
         c = robot_candidates(present, first)
         x = np.concatenate([np.full((len(c), 1), present[0]), c.states[..., 0]], axis=1)
         y = np.concatenate([np.full((len(c), 1), present[1]), c.states[..., 1]], axis=1)
-        _draw_road(ax, (present[0] - 5, x.max() + 5), float(y.min()))
+        draw_road(ax, (present[0] - 5, x.max() + 5), float(y.min()))
         ax.plot(x.T, y.T, color="tab:blue", lw=0.3, alpha=0.15)
         ax.plot(x[0, :STEPS_PER_WINDOW + 1], y[0, :STEPS_PER_WINDOW + 1], color="k", lw=2.0, label=f"fixed first window: {Action(first).acceleration:+.0f} m/s², {Action(first).lane} lane")
         ax.plot(present[0], present[1], "ko")
@@ -59,7 +59,7 @@ def plot_plan(planner: Planner, history: np.ndarray, first_action: int, cost: Co
         robot = np.concatenate([history[-1:, 0], plan.candidates.states[index]])
         futures = human[:samples, k]
         x_all = np.concatenate([robot[:, 0], futures[..., 0].ravel(), robot_hist[-15:, 0], human_hist[-15:, 0]])
-        _draw_road(ax, (x_all.min() - 3, x_all.max() + 3), float(min(futures[..., 1].min(), robot[:, 1].min())))
+        draw_road(ax, (x_all.min() - 3, x_all.max() + 3), float(min(futures[..., 1].min(), robot[:, 1].min())))
         for f in futures:
             ax.plot(np.r_[human_hist[-1, 0], f[:, 0]], np.r_[human_hist[-1, 1], f[:, 1]], color="tab:orange", lw=0.6, alpha=0.5)
         ax.plot(human_hist[-15:, 0], human_hist[-15:, 1], color="tab:orange", lw=2.2, label="human history")

@@ -1,0 +1,229 @@
+"""Human agents for closed loop (sim/humans.py): synthetic drivers with sampled styles, a human
+model as a driver, a recorded human replayed; the spec factory and its errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from trafficweaving.data.trials import load_trials
+from trafficweaving.dynamics import future_states
+from trafficweaving.errors import InputError
+from trafficweaving.model.checkpoint import load_model
+from trafficweaving.scenario import DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y, MIN_HISTORY, study_initial_conditions
+from trafficweaving.sim.drivers import DriverModel, DriverStyles
+from trafficweaving.sim.generate import generate_trials
+from trafficweaving.sim.humans import (ModelDriver, ReplayDriver, SampledDrivers, SyntheticDrivers,
+                                       constant_acceleration_future, human_agent)
+from trafficweaving.sim.world import run_episodes
+
+
+class LaneChangeRobot:
+    """Test robot: holds its speed and steers into the other lane (a damped spring, m/s²). With a
+    ``human`` (a :class:`ModelDriver` with ``robot_plan``), it tells the human its plan each step:
+    its states when it holds zero acceleration (it acts before the human: car 0)."""
+
+    def __init__(self, human: ModelDriver | None = None):
+        self.human = human
+
+    def reset(self, rng, start, me):
+        self.me = me
+        self.target = np.where(start[:, me, 1] > LANE_DIVIDER_Y, LANE_CENTRE_Y["right"], LANE_CENTRE_Y["left"])
+
+    def act(self, history):
+        now = history[:, self.me, -1]
+        if self.human is not None:
+            self.human.robot_future = future_states(now, np.zeros((len(now), HORIZON, 2)))
+        ydd = np.clip(0.5 * (self.target - now[:, 1]) - 1.4 * now[:, 3], -2.0, 2.0)
+        return np.stack([np.zeros(len(now)), ydd], axis=1)
+
+
+def study_starts(*index):
+    ics = study_initial_conditions()
+    return np.stack([ics[i].start_states() for i in index])
+
+
+def run(human, start, seed=0, robot=None):
+    """Both cars' recorded states ``[m, 2, T, 6]`` with the robot as car 0, the human as car 1."""
+    world = run_episodes(start, [robot or LaneChangeRobot(), human], np.random.default_rng(seed))
+    return world.recorded()[0]
+
+
+class Recorder:
+    """Wraps a predictor's ``prepare``/``sample``: records the situations and the samples."""
+
+    def __init__(self, agent: ModelDriver):
+        self.prepared, self.samples, predictor = [], [], agent.predictor
+        prepare, sample = predictor.prepare, predictor.sample
+        predictor.prepare = lambda history, futures: (self.prepared.append((np.array(history), np.array(futures))),
+                                                      prepare(history, futures))[1]
+        predictor.sample = lambda *args: self.samples.append(sample(*args)) or self.samples[-1]
+
+
+@pytest.fixture(scope="module")
+def default_model():
+    return load_model("default")
+
+
+@pytest.fixture(scope="module")
+def replay_file(tmp_path_factory):
+    """3 synthetic trials with agent 0 relabelled ``robot``, as a Parquet file."""
+    trials, _ = generate_trials(3, seed=1)
+    trials.roles[:, 0] = "robot"
+    path = tmp_path_factory.mktemp("replay") / "trials.parquet"
+    trials.write_parquet(path)
+    return path
+
+
+# ------------------------------------------------------------------ closed loop, every human
+@pytest.fixture(params=["synthetic", "model:default", "replay"])
+def spec(request, replay_file):
+    return f"replay:{replay_file}" if request.param == "replay" else request.param
+
+
+def test_closed_loop_contract_and_determinism(spec):
+    start = study_starts(0, 7)
+    agent = human_agent(spec)
+    agent.reset(np.random.default_rng(0), start, 1)
+    history = np.repeat(start[:, :, None], MIN_HISTORY + 1, axis=2)
+    actions = agent.act(history)
+    assert actions.shape == (2, 2) and np.isfinite(actions).all()
+
+    states = run(human_agent(spec), start, seed=4)
+    assert states.shape[:2] == (2, 2) and states.shape[2] > 20 and np.isfinite(states).all()
+    np.testing.assert_array_equal(states, run(human_agent(spec), start, seed=4))
+    if not spec.startswith("replay:"):  # a replay of one drawn trial may draw the same one
+        assert not np.array_equal(states, run(human_agent(spec), start, seed=5))
+
+
+def test_authors_model_drives(authors_model_dir):
+    states = run(human_agent(f"model:authors:{authors_model_dir / 'weights.npz'}"), study_starts(3))
+    assert np.isfinite(states).all() and states.shape[2] > 20
+
+
+# ------------------------------------------------------------------ synthetic
+def test_sampled_drivers_are_synthetic_drivers_with_styles_from_the_rng():
+    start = study_starts(1, 2, 9)
+    rng = np.random.default_rng(11)
+    styles = DriverStyles.sample(DriverModel(), len(start), rng)  # what reset draws first
+    expected = run_episodes(start, [LaneChangeRobot(), SyntheticDrivers(styles)], rng).recorded()[0]
+    np.testing.assert_array_equal(run(SampledDrivers(), start, seed=11), expected)
+
+
+# ------------------------------------------------------------------ model
+def test_constant_acceleration_future():
+    present = np.array([[-100.0, -1.8, 29.0, 0.1, 0.5, -0.2], [-90.0, -6.1, 27.0, 0.0, 0.0, 0.0]])
+    future = constant_acceleration_future(present)
+    assert future.shape == (2, HORIZON, 6)
+    tau = DT * np.arange(1, HORIZON + 1)[:, None]  # s
+    np.testing.assert_allclose(future[..., 4:6], np.repeat(present[:, None, 4:6], HORIZON, 1))
+    np.testing.assert_allclose(future[..., 2:4], present[:, None, 2:4] + present[:, None, 4:6] * tau, atol=1e-12)
+    np.testing.assert_allclose(future[..., 0:2], present[:, None, 0:2] + present[:, None, 2:4] * tau
+                               + 0.5 * present[:, None, 4:6] * tau**2, atol=1e-12)
+
+
+def test_model_driver_conditions_on_its_history_robot_first_and_the_guess(default_model):
+    """The human as car 0: the model sees the robot (car 1) first, and the robot holding its
+    present acceleration."""
+    start = study_starts(4)
+    agent = ModelDriver(default_model)
+    recorder = Recorder(agent)
+    world = run_episodes(start, [agent, LaneChangeRobot()], np.random.default_rng(2), max_steps=12)
+    history = world.history[:, :, :MIN_HISTORY]
+    ordered, futures = agent.conditioning(history)
+    np.testing.assert_array_equal(ordered[0, :, 0], history[0, 1])
+    np.testing.assert_array_equal(ordered[0, :, 1], history[0, 0])
+    np.testing.assert_array_equal(futures, constant_acceleration_future(history[:, 1, -1]))
+    seen_history, seen_future = recorder.prepared[0]
+    np.testing.assert_array_equal(seen_history, ordered[0])
+    np.testing.assert_array_equal(seen_future, futures)
+
+
+def test_model_driver_samples_every_3_steps_and_executes_the_sample(default_model):
+    start = study_starts(0, 12)
+    agent = ModelDriver(default_model)
+    recorder = Recorder(agent)
+    states = run(agent, start, seed=3)
+    steps = states.shape[2]
+    # holds its start acceleration until MIN_HISTORY steps exist; then one sample per block
+    held = np.repeat(start[:, 1, None, 4:6], MIN_HISTORY - 1, 1)
+    np.testing.assert_array_equal(states[:, 1, 1:MIN_HISTORY, 4:6], held)
+    assert [len(h) for h, _ in recorder.prepared[::2]] == list(range(MIN_HISTORY, steps, 3))
+    blocks = [s[0, 0, :3].double().numpy() for s in recorder.samples]
+    for k, first in enumerate(range(MIN_HISTORY, steps, 3)):
+        for episode in (0, 1):
+            done = min(3, steps - first)
+            np.testing.assert_allclose(states[episode, 1, first:first + done, 4:6], blocks[2 * k + episode][:done])
+    assert not np.allclose(blocks[0], blocks[2])  # a new situation, a new block
+
+
+def test_model_driver_with_the_robot_plan(default_model):
+    agent = ModelDriver(default_model, robot_plan=True)
+    recorder = Recorder(agent)
+    states = run(agent, study_starts(5), robot=LaneChangeRobot(agent), seed=1)
+    for history, future in recorder.prepared:
+        np.testing.assert_array_equal(future[0], future_states(history[-1, 0], np.zeros((HORIZON, 2))))
+    assert np.isfinite(states).all()
+    with pytest.raises(RuntimeError, match="robot_future"):
+        run(ModelDriver(default_model, robot_plan=True), study_starts(5))
+
+
+# ------------------------------------------------------------------ replay
+def test_replay_reproduces_the_recording(replay_file):
+    trials = load_trials(replay_file)
+    agent = human_agent(f"replay:{replay_file}#2")
+    start = agent.start_states(2)
+    np.testing.assert_array_equal(start, trials.states[2, :, 0])  # robot (agent 0) first
+    np.testing.assert_array_equal(agent.start_states([2, 2], me=0), trials.states[[2, 2]][:, ::-1, 0])
+    states = run(agent, start[None], seed=8)
+    recorded, length = trials.states[2, 1], trials.lengths[2]
+    assert states.shape[2] > length
+    np.testing.assert_array_equal(states[0, 1, :length, 4:6], recorded[:length, 4:6])
+    last = np.repeat(recorded[None, length - 1, 4:6], states.shape[2] - length, 0)
+    np.testing.assert_array_equal(states[0, 1, length:, 4:6], last)  # the last acceleration is kept
+    assert agent.played.tolist() == [2]
+
+
+def test_replay_draws_trials_from_the_rng(replay_file):
+    agent = human_agent(f"replay:{replay_file}")
+    agent.reset(np.random.default_rng(0), study_starts(*range(12)), 1)
+    played = agent.played.copy()
+    agent.reset(np.random.default_rng(0), study_starts(*range(12)), 1)
+    np.testing.assert_array_equal(agent.played, played)
+    assert set(played) == {0, 1, 2}
+
+
+def test_replay_of_real_human_in_the_loop_trials(hitl_trials):
+    agent = ReplayDriver(hitl_trials, trial=int(hitl_trials.trial_ids[0]))
+    human = int(np.flatnonzero(hitl_trials.roles[0] == "human")[0])
+    states = run(agent, agent.start_states(agent.trial)[None])
+    length = min(hitl_trials.lengths[0], states.shape[2])
+    np.testing.assert_array_equal(states[0, 1, 0], hitl_trials.states[0, human, 0])
+    np.testing.assert_array_equal(states[0, 1, :length, 4:6], hitl_trials.states[0, human, :length, 4:6])
+
+
+# ------------------------------------------------------------------ bad specs
+@pytest.mark.parametrize("spec", ["", "robot", "model:", "replay:", "Synthetic", "model"])
+def test_unknown_spec(spec):
+    with pytest.raises(InputError, match="expected one of: synthetic, model:SPEC"):
+        human_agent(spec)
+
+
+def test_missing_files_and_bad_trials(tmp_path, replay_file):
+    for spec in (f"model:{tmp_path / 'none.pt'}", f"model:authors:{tmp_path / 'none.npz'}",
+                 f"replay:{tmp_path / 'none.parquet'}"):
+        with pytest.raises(InputError, match="none"):
+            human_agent(spec)
+    with pytest.raises(InputError, match=r"no trial 7 .*trial ids 0\.\.2"):
+        human_agent(f"replay:{replay_file}#7")
+    with pytest.raises(InputError, match="robot_plan applies only to model"):
+        human_agent("synthetic", robot_plan=True)
+
+
+def test_replay_without_a_human(tmp_path):
+    trials, _ = generate_trials(1, seed=2)
+    trials.roles[:] = "robot"
+    path = tmp_path / "robots.parquet"
+    trials.write_parquet(path)
+    with pytest.raises(InputError, match=f"{path}: .*expected a dataset with an agent labelled human"):
+        human_agent(f"replay:{path}")
