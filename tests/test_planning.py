@@ -16,6 +16,7 @@ from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import Budget, Planner, example_history
 from trafficweaving.planning.steering import optimal_time, steer, steering_cost
 from trafficweaving.scenario import DT, HORIZON, LANE_CENTRE_Y
+from trafficweaving.sim.world import World
 
 LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
 STATES = np.array([[RIGHT, 0.0, 0.0], [LEFT, 0.4, -0.5], [-3.5, -1.2, 2.0], [-5.0, 0.8, 0.3]])
@@ -279,19 +280,18 @@ def test_real_time_mode_returns_within_the_deadline():
 def test_mpc_holds_then_replans_every_window_with_the_fixed_first_window():
     torch.manual_seed(0)
     policy = MPCPolicy(Planner(HumanPredictor(CVAE())), budget=Budget(1, 2, 2))
-    history = _history(1)
-    policy.reset(history[0, 0])
-    for t in range(HOLD_STEPS + 9):
-        robot = policy.step(history)
-        human = history[-1, 1] + [29.0 * DT, 0, 0, 0, 0, 0]
-        history = np.concatenate([history, np.stack([robot, human])[None]])
-    hold = history[: HOLD_STEPS + 1, 0]
-    np.testing.assert_allclose(hold[:, 1], RIGHT)
-    np.testing.assert_allclose(hold[:, 2], 29.0)
-    assert len(policy.plans) == 3  # at t = 8, 11, 14
+    world = World(_history(1))  # one episode; the robot is car 0, the human keeps its speed
+    policy.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
+    for _ in range(HOLD_STEPS + 9):
+        world.step(np.stack([policy.act(world.history), np.zeros((1, 2))], axis=1))
+    robot = world.history[0, 0]
+    np.testing.assert_allclose(robot[: HOLD_STEPS + 1, 1], RIGHT)
+    np.testing.assert_allclose(robot[: HOLD_STEPS + 1, 2], 29.0)
+    assert len(policy.plans) == len(policy.latencies) == 3  # at t = 8, 11, 14
     assert policy.plans[0].actions[0] == Action.of(0.0, "right").index
     for previous, current in zip(policy.plans, policy.plans[1:]):
         assert current.actions[0] == previous.actions[1]
-    # what the robot executed in window t = 11..14 is the first plan's window 1
-    executed = rollout(history[11, 0], policy.plans[0].actions[1:2][None])[0]
-    np.testing.assert_allclose(history[12:15, 0], executed)
+    # what the robot executed in window t = 11..14 is the first plan's window 1, from its state at t = 11
+    executed = rollout(robot[11], policy.plans[0].actions[1:2][None])[0]
+    np.testing.assert_allclose(robot[12:15, 5], executed[:, 5])
+    np.testing.assert_allclose(robot[12:14, 4], executed[:2, 4])

@@ -134,35 +134,45 @@ def test_mpc_refuses_bad_options(planner):
     rejects("cost", MPCPolicy, planner, cost=1000.0)
 
 
-@pytest.mark.parametrize("state, expected", [(_with(np.nan, (-1, 0, 1))[-1, 0], "NaN"), (np.zeros(5), "shape [5]"),
-                                             (np.zeros((1, 6)), "shape [1, 6]"), ("robot", "not an array of numbers")])
-def test_mpc_reset_refuses_bad_states(planner, state, expected):
-    assert expected in rejects("robot_state", MPCPolicy(planner).reset, state)
+START = HISTORY[None, -1]  # one episode's start [1, 2, 6]: robot, human
 
 
-def test_mpc_step_refuses_bad_or_inconsistent_histories(planner):
+def episode(history):
+    """A robot-first history [t+1, 2, 6] as the world hands it to the robot as car 0: [1, 2, t+1, 6]."""
+    return np.asarray(history).swapaxes(0, 1)[None]
+
+
+@pytest.mark.parametrize("start, expected", [(_with(np.nan, (-1, 0, 1))[None, -1], "NaN"), (np.zeros((1, 2, 5)), "shape [1, 2, 5]"),
+                                             (HISTORY[-2:], "shape [2, 2, 6]"), ("robot", "not an array of numbers")])
+def test_mpc_reset_refuses_bad_starts(planner, start, expected):
+    assert expected in rejects("start", MPCPolicy(planner).reset, np.random.default_rng(0), start, 0)
+
+
+def test_mpc_reset_refuses_bad_rngs_and_cars(planner):
+    policy = MPCPolicy(planner)
+    for rng in (0, None, np.random.RandomState(0)):
+        rejects("rng", policy.reset, rng, START, 0)
+    for me in (-1, 2, 0.0, True):
+        rejects("me", policy.reset, np.random.default_rng(0), START, me)
+
+
+def test_mpc_act_refuses_bad_or_out_of_step_histories(planner):
     policy = MPCPolicy(planner, budget=TINY)
     with pytest.raises(RuntimeError, match="reset"):
-        policy.step(HISTORY)
-    policy.reset(HISTORY[-1, 0])
-    for history, expected in BAD_HISTORIES:
-        if not expected.startswith("3 steps"):  # before the first plan, one step of history is enough
-            rejects("history", policy.step, history)
-    elsewhere = _with(HISTORY[-1, 0, 0] + 1.0, (-1, 0, 0))
-    assert "expected the robot state this policy set last" in rejects("history[-1, 0]", policy.step, elsewhere)
-    state = policy.step(HISTORY[-1:])  # one step of history while holding
-    rejects("history[-1, 0]", policy.step, HISTORY)  # the robot did not move to the returned state
-    following = np.concatenate([HISTORY, np.stack([state, HISTORY[-1, 1]])[None]])
-    assert policy.step(following.astype(np.float32)).shape == (6,)  # float32 storage is close enough
+        policy.act(episode(HISTORY))
+    policy.reset(np.random.default_rng(0), START, 0)
+    for bad, expected in ((episode(_with(np.nan, (-1, 1, 0))), "NaN"), (HISTORY, "shape [10, 2, 6]"),
+                          (np.repeat(episode(HISTORY), 2, axis=0), "shape [2, 2, 10, 6]"), ("a history", "not an array")):
+        assert expected in rejects("history", policy.act, bad)
+    assert policy.act(episode(HISTORY[-1:]).astype(np.float32)).shape == (1, 2)  # one step of history while holding
 
 
 def test_mpc_without_hold_plans_at_once_and_then_needs_enough_history(planner):
     policy = MPCPolicy(planner, budget=TINY, hold_steps=0)
-    policy.reset(HISTORY[2, 0])
-    assert "expected at least 5" in rejects("history", policy.step, HISTORY[:3])
-    policy.reset(HISTORY[-1, 0])
-    policy.step(HISTORY)
-    assert len(policy.plans) == 1
+    policy.reset(np.random.default_rng(0), HISTORY[None, 2], 0)
+    assert "expected at least 5" in rejects("history", policy.act, episode(HISTORY[:3]))
+    policy.reset(np.random.default_rng(0), START, 0)
+    assert policy.act(episode(HISTORY)).shape == (1, 2) and len(policy.plans) == 1
 
 
 # ---------------------------------------------------------------- HumanPredictor (the CVAE's sampling)

@@ -42,11 +42,6 @@ def history(value, min_steps: int = MIN_HISTORY, name: str = "history") -> np.nd
     return array
 
 
-def car_state(name: str, value) -> np.ndarray:
-    """One car's state ``[6]`` (``[x, y, xd, yd, xdd, ydd]``, m, m/s, m/s²), finite."""
-    return finite_array(name, value, (_STATE_DIM,), f"[{_STATE_DIM}]")
-
-
 def integer(name: str, value, low: int, high: int | None = None) -> int:
     """``value`` as an ``int`` in ``low..high`` (``high`` None: no upper bound); bools, floats and
     other non-integers are refused (NumPy integers are accepted)."""

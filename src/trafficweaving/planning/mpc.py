@@ -1,36 +1,40 @@
-"""The paper's receding-horizon robot policy (paper §II-B and §V-C).
+"""The paper's receding-horizon robot policy (paper §II-B and §V-C), as an agent of the world
+(:class:`~trafficweaving.sim.world.Agent`).
 
 The robot holds its lane at constant speed for the first 8 steps, then plans every 3 steps
 (0.3 s). Each plan's window 0 is fixed: it is the window already being executed, chosen by the
 previous plan (the hold action for the first plan); the chosen sequence's window 1 is executed
-next and becomes the next plan's fixed window.
+next and becomes the next plan's fixed window. The robot acts through accelerations, which the
+world integrates (trapezoid rule), so every plan starts from the robot's true state.
 """
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 
 from .. import validate
 from ..errors import InputError
-from ..scenario import LANE_CENTRE_Y, LANES, lane_of
+from ..scenario import LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
 from .candidates import STEPS_PER_WINDOW, Action, rollout
 from .costs import Cost, PaperCost
 from .planner import Budget, Plan, Planner, check_cost, plan_options
 
 HOLD_STEPS = 8
 """Steps the robot holds its lane at constant speed before its first plan."""
-STATE_TOLERANCE = 1e-3
-"""How far (m, m/s, m/s²) a history's last robot state may be from the state the policy set (a
-history stored in float32 is within it)."""
+ACCELERATION_COLUMNS = [STATE_NAMES.index("xdd"), STATE_NAMES.index("ydd")]
+"""Where a state keeps the accelerations ``[xdd, ydd]`` an agent acts with."""
 
 
 class MPCPolicy:
-    """Drives the robot one step at a time: :meth:`reset`, then :meth:`step` with the history.
+    """Drives the robot car of one episode (``m = 1``): :meth:`reset`, then :meth:`act` every step.
 
     ``cost`` defaults to :class:`PaperCost` towards the lane the robot did not start in;
     ``deadline`` (s) switches the planner to its real-time mode; ``budget`` sets the sample counts
-    otherwise; ``hold_steps``: steps held before the first plan. :attr:`plans` keeps every plan
-    made since :meth:`reset`. Bad arguments raise :class:`~trafficweaving.errors.InputError`.
+    otherwise (None: the planner's); ``hold_steps``: steps held before the first plan.
+    :attr:`plans` keeps every plan made since :meth:`reset` and :attr:`latencies` the seconds each
+    took. Bad arguments raise :class:`~trafficweaving.errors.InputError`.
     """
 
     def __init__(self, planner: Planner, cost: Cost | None = None, budget: Budget | None = None,
@@ -39,39 +43,50 @@ class MPCPolicy:
         self.fixed_cost = None if cost is None else check_cost(cost)
         self.budget, self.deadline = plan_options(budget, deadline)
         self.hold_steps = validate.integer("hold_steps", hold_steps, 0)
-        self.queue: list[np.ndarray] = []
+        self.me: int | None = None  # the robot's car index; None before reset
+        self.queue: list[np.ndarray] = []  # planned robot states [6] of the steps to come
         self.plans: list[Plan] = []
-        self.robot_state: np.ndarray | None = None  # where the robot is now: the last state reset or step set
+        self.latencies: list[float] = []
 
-    def reset(self, robot_state: np.ndarray) -> None:
-        """Start an episode with the robot at ``robot_state [6]`` (``[x, y, xd, yd, xdd, ydd]``, m,
-        m/s, m/s², finite)."""
-        robot_state = validate.car_state("robot_state", robot_state)
-        lane = lane_of(np.array([robot_state[1]]))[0]
+    def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
+        """Start an episode from ``start [1, 2, 6]`` (both cars' states ``[x, y, xd, yd, xdd,
+        ydd]``, m, m/s, m/s², finite) with the robot as car ``me`` (0 or 1). The planner's random
+        generator is reseeded from ``rng`` (a NumPy Generator), so the same seed gives the same
+        episode."""
+        if not isinstance(rng, np.random.Generator):
+            raise InputError(f"rng must be a numpy.random.Generator (np.random.default_rng(seed)), got {rng!r}")
+        start = validate.finite_array("start", start, (1, 2, len(STATE_NAMES)), f"[1, 2, {len(STATE_NAMES)}]")
+        self.me = validate.integer("me", me, 0, 1)
+        robot = start[0, self.me]
+        lane = lane_of(np.array([robot[1]]))[0]
         goal = next(other for other in LANES if other != lane)
         self.cost = self.fixed_cost or PaperCost(goal_y=LANE_CENTRE_Y[goal])
         self.hold = Action.of(0.0, lane).index
         windows = -(-self.hold_steps // STEPS_PER_WINDOW)
-        self.queue = list(rollout(robot_state, np.full((1, windows), self.hold))[0, : self.hold_steps])
+        self.queue = list(rollout(robot, np.full((1, windows), self.hold))[0, : self.hold_steps])
         self.next_fixed = self.hold
-        self.plans = []
-        self.robot_state = robot_state.copy()
+        self.plans, self.latencies = [], []
+        self.planner.generator.manual_seed(int(rng.integers(2**63)))
 
-    def step(self, history: np.ndarray) -> np.ndarray:
-        """The robot's state ``[6]`` at step t+1 given ``history [t+1, 2, 6]`` (robot, human; finite),
-        whose last robot state must be where this policy put the robot (the state of :meth:`reset`,
-        then the one the previous call returned)."""
-        if self.robot_state is None:
-            raise RuntimeError("MPCPolicy.step needs an episode: call reset(robot_state) first")
-        history = validate.history(history, min_steps=1)
-        if not np.allclose(history[-1, 0], self.robot_state, rtol=0.0, atol=STATE_TOLERANCE):
-            raise InputError(f"history[-1, 0] is {np.round(history[-1, 0], 4).tolist()} (expected the robot state this policy "
-                             f"set last, {np.round(self.robot_state, 4).tolist()}; reset(robot_state) starts another episode)")
+    def act(self, history: np.ndarray) -> np.ndarray:
+        """The robot's accelerations ``[1, 2]`` (``[xdd, ydd]``, m/s²) at step t+1 given both cars'
+        states ``history [1, 2, t+1, 6]`` (finite; called once per step after :meth:`reset`, at
+        least ``MIN_HISTORY`` steps at a plan).
+
+        They are the planned robot state's at t+1: the hold's, then those of the window being
+        executed, rolled out by the plan made at the window's start from the robot's true state
+        (the plan's robot states; the last step of a window stores the next window's acceleration,
+        applied from it on)."""
+        if self.me is None:
+            raise RuntimeError("MPCPolicy.act needs an episode: call reset(rng, start, me) first")
+        history = validate.finite_array("history", history, (1, 2, None, len(STATE_NAMES)),
+                                        f"[1, 2, t+1, {len(STATE_NAMES)}]")
         if not self.queue:
-            executing = self.next_fixed
-            plan = self.planner.plan(history, executing, self.cost, budget=self.budget, deadline=self.deadline)
+            robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: robot, human
+            clock = time.perf_counter()
+            plan = self.planner.plan(robot_first, self.next_fixed, self.cost, budget=self.budget, deadline=self.deadline)
+            self.latencies.append(time.perf_counter() - clock)
             self.plans.append(plan)
             self.next_fixed = int(plan.actions[1])
-            self.queue = list(rollout(history[-1, 0], np.array([[executing]]))[0])
-        self.robot_state = self.queue.pop(0)
-        return self.robot_state.copy()
+            self.queue = list(plan.robot[:STEPS_PER_WINDOW])
+        return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
