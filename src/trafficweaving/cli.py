@@ -393,6 +393,17 @@ def cmd_bench(args) -> None:
                          f"{payload['seconds']:.3f} s (median of {args.repeats}; {device}, {payload['threads']} threads)")
 
 
+def cmd_simulate(args) -> None:
+    """Closed-loop episodes of a robot against a human (:mod:`trafficweaving.sim.batch`)."""
+    from .sim.batch import simulate, summary_table
+
+    summary = simulate(args.episodes, args.robot, args.human, seed=args.seed, workers=args.workers,
+                       engine=args.engine, address=args.address, out=args.out,
+                       model=_model_spec(args.model, "--model"), deadline=args.deadline, device=args.device,
+                       progress=not args.json)
+    _emit(args, summary, summary_table(summary))
+
+
 def cmd_demo(args) -> None:
     """The main job (:mod:`trafficweaving.demo`)."""
     from .demo import run_demo
@@ -524,6 +535,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("simulate", help="closed-loop episodes of a robot against a human, with metrics and CIs")
+    p.add_argument("--episodes", type=POSITIVE, required=True, help="episodes 0..N-1 (each from --seed and its index)")
+    p.add_argument("--robot", required=True, help="planner, planner-cv or rules")
+    p.add_argument("--human", required=True, help="synthetic, model:SPEC, replay:FILE or replay:FILE#K")
+    p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--model", default="default", help="the planner's human model: checkpoint path, default, or authors:PATH")
+    p.add_argument("--deadline", type=_float_in(0, 3600),
+                   help="the planner's real-time mode: plan within this many seconds (default: fixed sample counts)")
+    p.add_argument("--workers", type=POSITIVE, default=1, help="episodes run at once (default 1: in this process)")
+    p.add_argument("--engine", choices=("local", "ray"), default="local",
+                   help="local: a process pool; ray: Ray tasks (pip install 'trafficweaving[ray]')")
+    p.add_argument("--address", help="with --engine ray: the Ray cluster to join (default: a new local instance)")
+    p.add_argument("--device", default="cpu", help="the models' device: cpu (default), auto, cuda, cuda:N")
+    p.add_argument("--out", required=True, help="output folder: episodes/episode_NNNNNN.parquet and summary.json; "
+                                                "a rerun resumes")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("demo", help="the main job, end to end, on the shipped defaults")
     p.add_argument("--out", default="out", help="output folder (default: out)")

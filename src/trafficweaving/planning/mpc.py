@@ -46,6 +46,7 @@ class MPCPolicy:
         self.me: int | None = None  # the robot's car index; None before reset
         self.queue: list[np.ndarray] = []  # planned robot states [6] of the steps to come
         self.plans: list[Plan] = []
+        self.plan_steps: list[int] = []  # the present step t of every plan
         self.latencies: list[float] = []
 
     def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
@@ -65,7 +66,7 @@ class MPCPolicy:
         windows = -(-self.hold_steps // STEPS_PER_WINDOW)
         self.queue = list(rollout(robot, np.full((1, windows), self.hold))[0, : self.hold_steps])
         self.next_fixed = self.hold
-        self.plans, self.latencies = [], []
+        self.plans, self.plan_steps, self.latencies = [], [], []
         self.planner.generator.manual_seed(int(rng.integers(2**63)))
 
     def act(self, history: np.ndarray) -> np.ndarray:
@@ -87,6 +88,7 @@ class MPCPolicy:
             plan = self.planner.plan(robot_first, self.next_fixed, self.cost, budget=self.budget, deadline=self.deadline)
             self.latencies.append(time.perf_counter() - clock)
             self.plans.append(plan)
+            self.plan_steps.append(history.shape[2] - 1)
             self.next_fixed = int(plan.actions[1])
             self.queue = list(plan.robot[:STEPS_PER_WINDOW])
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]

@@ -47,3 +47,51 @@ def plot_episode(trials: TrialSet, index: int, path: str | os.PathLike, title: s
     ax.legend(fontsize=8, loc="lower left")
     fig.suptitle(title or f"{trials.sources[index]}: robot (blue) and human (red)", fontsize=10)
     return _save(fig, path)
+
+
+def animate_episode(states: np.ndarray, roles: tuple[str, str], path: str | os.PathLike,
+                    plans: list[tuple[int, np.ndarray, np.ndarray]] = (), size: tuple[int, int] = (800, 300),
+                    title: str = "") -> Path:
+    """An animated GIF of an episode, one frame per step (10 frames/s): the road, both cars
+    ``states [2, T, 6]`` (their past paths drawn thin) coloured by ``roles``, and at each
+    replanning the robot's chosen future and the human futures it sampled: ``plans`` lists
+    ``(t, robot_future [15, 6], human_futures [n, 15, 6])`` by the step ``t`` each plan was made
+    at; a plan stays drawn until the next. Written atomically to ``path``."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.patches import Rectangle
+    from PIL import Image
+
+    from ..atomic import atomic_write
+    from ..scenario import CAR_LENGTH, CAR_WIDTH
+
+    states = np.asarray(states, dtype=float)
+    steps = states.shape[1]
+    by_step = sorted(plans, key=lambda p: p[0])
+    y_min = float(np.nanmin(states[:, :, 1]))
+    frames = []
+    for t in range(steps):
+        fig = Figure(figsize=(size[0] / 100, size[1] / 100), dpi=100)
+        canvas = FigureCanvasAgg(fig)
+        ax = fig.add_axes((0.06, 0.15, 0.92, 0.72))
+        centre = float(states[:, t, 0].mean())
+        draw_road(ax, (centre - 45.0, centre + 35.0), y_min)
+        current = [p for p in by_step if p[0] <= t]
+        if current:
+            made, robot_future, human_futures = current[-1]
+            for future in human_futures:
+                ax.plot(future[:, 0], future[:, 1], color=CAR_COLOURS["human"], lw=0.6, alpha=0.25)
+            ax.plot(robot_future[:, 0], robot_future[:, 1], color=CAR_COLOURS["robot"], lw=2.0, ls="--")
+        for car, role in enumerate(roles):
+            colour = CAR_COLOURS.get(role, "0.4")
+            ax.plot(states[car, : t + 1, 0], states[car, : t + 1, 1], color=colour, lw=1.0)
+            ax.add_patch(Rectangle((states[car, t, 0] - CAR_LENGTH / 2, states[car, t, 1] - CAR_WIDTH / 2),
+                                   CAR_LENGTH, CAR_WIDTH, color=colour, zorder=3))
+        plan_text = f"; plan made at {made * DT:.1f} s" if current else ""
+        ax.set_title(f"{title}  t = {t * DT:.1f} s{plan_text}".strip(), fontsize=9)
+        ax.set_xlabel("x (m)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        canvas.draw()
+        frames.append(Image.fromarray(np.asarray(canvas.buffer_rgba())[..., :3].copy()))
+    with atomic_write(path) as f:
+        frames[0].save(f, format="GIF", save_all=True, append_images=frames[1:], duration=round(1000 * DT), loop=0)
+    return Path(path)
