@@ -129,7 +129,7 @@ def test_planner_robots_swap_lanes_without_collision(spec, start, me):
 
 # ---------------------------------------------------------------- bad input
 def test_bad_specs_and_arguments_raise_input_errors():
-    with pytest.raises(InputError, match="spec must be one of planner, planner-cv, rules, got 'mpc'"):
+    with pytest.raises(InputError, match=r"robot 'mpc' is unknown \(expected one of: planner, planner-cv, rules\)"):
         robot_agent("mpc")
     assert ROBOT_SPECS == ("planner", "planner-cv", "rules")
     for bad in ({"time_headway": -1.0}, {"politeness": float("nan")}, {"hurried_lane_change_time": 4.0}):

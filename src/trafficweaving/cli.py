@@ -404,6 +404,32 @@ def cmd_simulate(args) -> None:
     _emit(args, summary, summary_table(summary))
 
 
+def cmd_plot_episode(args) -> None:
+    """The paper's Fig. 6 of one trial or episode, and optionally its animation."""
+    from .data.trials import load_trials
+    from .viz.episode_figures import animate_episode, plot_episode
+
+    out = check_output_file(args.out, "--out")
+    gif = check_output_file(args.gif, "--gif") if args.gif is not None else None
+    trials = load_trials(args.data)
+    if args.trial >= len(trials):
+        raise InputError(f"--trial {args.trial}: {args.data} has {len(trials)} trials (expected 0..{len(trials) - 1})")
+    payload = {"figure": str(plot_episode(trials, args.trial, out))}
+    if gif is not None:
+        plans = None
+        if "episode" in trials.metadata:
+            from .sim.episodes import rerun_with_plans
+
+            plans = rerun_with_plans(trials)
+        length = int(trials.lengths[args.trial])
+        roles = tuple(str(r) for r in trials.roles[args.trial])
+        payload["animation"] = str(animate_episode(trials.states[args.trial, :, :length], roles, gif, plans or [],
+                                                   title=str(trials.sources[args.trial])))
+        payload["plans_drawn"] = len(plans or [])
+    _emit(args, payload, "\n".join(f"wrote {path}" for key, path in payload.items() if key != "plans_drawn")
+          + (f" ({payload['plans_drawn']} plans drawn)" if gif is not None else ""))
+
+
 def cmd_demo(args) -> None:
     """The main job (:mod:`trafficweaving.demo`)."""
     from .demo import run_demo
@@ -553,6 +579,15 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "a rerun resumes")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("plot-episode", help="the paper's Fig. 6 of an episode (or any trial), and its animation")
+    p.add_argument("data", help="an episode log (simulate's DIR/episodes/episode_K.parquet) or any dataset")
+    p.add_argument("--trial", type=NON_NEGATIVE, default=0, help="which trial of the file (default 0)")
+    p.add_argument("--out", required=True, help="output PNG (Fig. 6: accelerations over time and (x, y) paths)")
+    p.add_argument("--gif", help="also an animated GIF; for a planner's episode with each plan's chosen future "
+                                 "and sampled human futures (the episode is run again to recover them)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_plot_episode)
 
     p = sub.add_parser("demo", help="the main job, end to end, on the shipped defaults")
     p.add_argument("--out", default="out", help="output folder (default: out)")

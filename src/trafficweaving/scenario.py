@@ -152,9 +152,7 @@ def check_validity(states: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray,
     on_road = (y >= ROAD_Y_MIN) & (y <= ROAD_Y_MAX)
     off_road = (~on_road & upto_cut[:, None, :]).any(axis=(1, 2))
 
-    last_before = np.clip(first_past - 1, 0, t_max - 1)  # [n, 2]
-    y_end = np.take_along_axis(y, last_before[..., None], axis=2)[..., 0]
-    swapped = (SWAP_THRESHOLD_Y - y[:, :, 0]) * (SWAP_THRESHOLD_Y - y_end) < 0  # [n, 2]
+    swapped = swapped_before_cutoff(states, lengths)  # [n, 2]
 
     reason = np.zeros(n, dtype=np.int8)
     reason[~swapped.all(axis=1)] = VALIDITY_REASONS.index("no_lane_swap")
@@ -162,6 +160,20 @@ def check_validity(states: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray,
     reason[~reached.all(axis=1)] = VALIDITY_REASONS.index("cutoff_not_reached")
     reason[collision] = VALIDITY_REASONS.index("collision")
     return reason, np.where(reason == 0, cut, 0)
+
+
+def swapped_before_cutoff(states: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """Per trial and car ``[n, 2]`` (bool): on the other side of ``SWAP_THRESHOLD_Y`` from its
+    start at its last recorded step before ``CUTOFF_X`` (its last recorded step if it never reaches
+    it), the lane-swap rule of :func:`check_validity`. ``states [n, 2, T, 6]``, ``lengths [n]``."""
+    states = np.asarray(states, dtype=float)
+    lengths = np.asarray(lengths)
+    recorded = np.arange(states.shape[2])[None, None, :] < lengths[:, None, None]  # [n, 1, T]
+    past = (states[..., 0] >= CUTOFF_X) & recorded  # [n, 2, T]
+    last = np.where(past.any(axis=2), np.maximum(past.argmax(axis=2) - 1, 0), lengths[:, None] - 1)  # [n, 2]
+    y = states[..., 1]
+    y_end = np.take_along_axis(y, last[..., None], axis=2)[..., 0]
+    return (SWAP_THRESHOLD_Y - y[:, :, 0]) * (SWAP_THRESHOLD_Y - y_end) < 0
 
 
 def lane_of(y: np.ndarray) -> np.ndarray:

@@ -60,6 +60,12 @@ class EpisodeSpec:
         """JSON form, stored with every episode (the budget as its three sample counts)."""
         return {**asdict(self), "budget": None if self.budget is None else list(asdict(self.budget).values())}
 
+    @staticmethod
+    def from_dict(fields: dict) -> "EpisodeSpec":
+        """The inverse of :meth:`as_dict` (an episode log's ``spec``)."""
+        budget = fields.get("budget")
+        return EpisodeSpec(**{**fields, "budget": None if budget is None else Budget(*budget)})
+
 
 @dataclass
 class Episode:
@@ -140,3 +146,23 @@ def run_episode(spec: EpisodeSpec, index: int, agents: tuple[Agent, Agent] | Non
         metadata={"episode": record},
     )
     return Episode(index, trials)
+
+
+def rerun_with_plans(trials: TrialSet, max_futures: int = 32) -> list[tuple[int, np.ndarray, np.ndarray]] | None:
+    """The robot's plans in the one-episode log ``trials`` (written by :func:`run_episode`), found
+    by running the episode again from its record: ``(t, robot_future [15, 6], human_futures [n, 15,
+    6])`` for every plan, by the step ``t`` it was made at, at most ``max_futures`` sampled human
+    futures each. None when the log holds no episode record, its robot does not plan, or the run
+    does not reproduce the log (a ``deadline`` run: the plans depend on the machine's speed)."""
+    record = trials.metadata.get("episode")
+    if not isinstance(record, dict) or len(trials) != 1:
+        return None
+    spec = EpisodeSpec.from_dict(record["spec"])
+    robot, human = spec.agents()
+    episode = run_episode(spec, int(record["index"]), (robot, human))
+    length = int(trials.lengths[0])
+    same = int(episode.trials.lengths[0]) == length and np.array_equal(
+        episode.trials.states[0, :, :length], trials.states[0, :, :length])
+    if not same or not getattr(robot, "plans", None):
+        return None
+    return [(t, plan.robot, plan.human[:max_futures]) for t, plan in zip(robot.plan_steps, robot.plans)]

@@ -50,24 +50,13 @@ from scipy import stats
 
 from ..planning.candidates import STEPS_PER_WINDOW
 from ..planning.costs import PaperCost
-from ..scenario import (COLLISION_DY, CUTOFF_X, DT, LANE_CENTRE_Y, SWAP_THRESHOLD_Y, VALIDITY_REASONS,
-                        check_validity, lane_of)
+from ..scenario import (COLLISION_DY, CUTOFF_X, DT, LANE_CENTRE_Y, VALIDITY_REASONS, check_validity, lane_of,
+                        swapped_before_cutoff)
 
 PLANNING_PERIOD_S = STEPS_PER_WINDOW * DT
 """The replanning period, s (0.3 s): a plan that takes longer misses its deadline."""
 Z95 = float(stats.norm.ppf(0.975))
 """Two-sided 95 % standard normal quantile (1.96)."""
-
-
-def swapped_before_cutoff(states: np.ndarray, length: int) -> np.ndarray:
-    """Per car ``[2]`` (bool): on the other side of ``SWAP_THRESHOLD_Y`` from its start at its last
-    step before ``CUTOFF_X`` (its last recorded step if it never reaches it) — the lane-swap rule of
-    :func:`~trafficweaving.scenario.check_validity`, car by car. ``states [2, T, 6]``."""
-    x, y = states[:, :length, 0], states[:, :length, 1]
-    past = x >= CUTOFF_X
-    last = np.where(past.any(axis=1), np.maximum(past.argmax(axis=1) - 1, 0), length - 1)
-    y_end = y[np.arange(2), last]
-    return (SWAP_THRESHOLD_Y - y[:, 0]) * (SWAP_THRESHOLD_Y - y_end) < 0
 
 
 def near_collision_steps(robot: np.ndarray, human: np.ndarray) -> np.ndarray:
@@ -100,7 +89,7 @@ def episode_metrics(states: np.ndarray, length: int, robot: int, dt: float = DT)
     human = 1 - robot
     reason, _ = check_validity(states[None], np.array([length]))
     outcome = VALIDITY_REASONS[int(reason[0])]
-    swapped = swapped_before_cutoff(states, length)
+    swapped = swapped_before_cutoff(states[None], np.array([length]))[0]
     robot_swapped, human_swapped = bool(swapped[robot]), bool(swapped[human])
 
     x, y = states[:, :, 0], states[:, :, 1]

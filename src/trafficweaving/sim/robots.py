@@ -197,7 +197,7 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
     spec raises :class:`~trafficweaving.errors.InputError`.
     """
     if spec not in ROBOT_SPECS:
-        raise InputError(f"spec must be one of {', '.join(ROBOT_SPECS)}, got {spec!r}")
+        raise InputError(f"robot {spec!r} is unknown (expected one of: {', '.join(ROBOT_SPECS)})")
     if spec == "rules":
         return RuleBasedRobot()
     device = choose_device(str(device))
