@@ -277,6 +277,15 @@ def test_real_time_mode_returns_within_the_deadline():
         assert plan.first_stage_samples >= 1 and np.isfinite(plan.first_stage_cost).any()
 
 
+def test_a_deadline_too_short_for_every_candidate_still_weighs_every_action_choice():
+    planner = Planner(HumanPredictor(CVAE()))
+    plan = planner.plan(_history(), Action.of(0.0, "right").index, PaperCost(goal_y=LEFT), deadline=1e-3)
+    scored = np.isfinite(plan.first_stage_cost)
+    assert 0 < scored.sum() < len(scored)  # only part of stage 1 was scored in time
+    assert set(plan.candidates.actions[scored, 1]) == set(range(8))  # every window-1 action among them
+    assert set(plan.candidates.actions[scored, 2]) == set(range(8))
+
+
 def test_mpc_holds_then_replans_every_window_with_the_fixed_first_window():
     torch.manual_seed(0)
     policy = MPCPolicy(Planner(HumanPredictor(CVAE())), budget=Budget(1, 2, 2))

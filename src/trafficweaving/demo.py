@@ -6,7 +6,11 @@
    simulated drivers;
 3. the shipped human model: its scores on the real trials (in-sample, cross-validated and
    calibrated, as stored in the checkpoint) and a figure of its sampled futures (paper Fig. 3);
-4. one full-budget plan of the paper's planner against that model, drawn.
+4. one full-budget plan of the paper's planner against that model, drawn;
+5. closed loop: the planner with the shipped model in real-time mode (0.3 s per plan) drives
+   against simulated drivers and against a model-driven human (the authors' model when at hand,
+   else the shipped one), with the metrics of each batch, the paper's Fig. 6 of an episode and
+   its animation (each plan's chosen future and the human futures it sampled).
 """
 
 from __future__ import annotations
@@ -24,6 +28,10 @@ DEMO_REAL_PICKS = [(2, 1, 10), (7, 1, 20), (12, 1, 25)]
 """(trial, human agent, t) of the real trials drawn in the demo's prediction figure."""
 DEMO_SYNTHETIC_PICKS = [(0, 0, 12), (1, 1, 20)]
 """(trial, human agent, t) drawn when no real trials are at hand."""
+DEMO_EPISODES = 4
+"""Closed-loop episodes per human in the demo (``trafficweaving simulate`` runs as many as asked)."""
+DEMO_DEADLINE = 0.3
+"""The demo's planner runs in real-time mode: each plan within the 0.3 s replanning period, s."""
 
 
 def find_hitl_dir(explicit: str | Path | None) -> Path | None:
@@ -72,6 +80,7 @@ def run_demo(out: str | Path, trials: int = 1105, seed: int = 0, hitl: str | Pat
         log(f"wrote {path}")
     _human_model_report(dataset, reference, out / "figures", log)
     _plan_figure(out / "figures", log)
+    _closed_loop(out, hitl_dir, log)
 
 
 def _score(value) -> str:
@@ -124,3 +133,28 @@ def _plan_figure(figures: Path, log: Callable[[str], None]) -> None:
     budget = planner.budget
     log(f"\nplanned against {budget.futures} sampled human futures (every candidate × {budget.first_stage_samples}, "
         f"best {budget.finalists} × {budget.second_stage_samples}); wrote {path}")
+
+
+def _closed_loop(out: Path, hitl_dir: Path | None, log: Callable[[str], None]) -> None:
+    """A few real-time closed-loop episodes against simulated and model-driven humans, their
+    metrics, and Fig. 6 and the animation of one of them."""
+    from .sim.batch import simulate, summary_table
+    from .sim.episodes import EpisodeSpec, run_episode
+    from .viz.episode_figures import animate_episode, plot_episode
+
+    authors = None if hitl_dir is None else hitl_dir.parent / "authors_model" / "weights.npz"
+    model_human = f"model:authors:{authors}" if authors is not None and authors.is_file() else "model:default"
+    for human, name in (("synthetic", "synthetic"), (model_human, "model")):
+        log(f"\nclosed loop: the planner (shipped model, {DEMO_DEADLINE:g} s per plan) vs {human}")
+        summary = simulate(DEMO_EPISODES, "planner", human, seed=0, out=out / "closed_loop" / name,
+                           deadline=DEMO_DEADLINE, progress=True)
+        log(summary_table(summary))
+    spec = EpisodeSpec("planner", "synthetic", seed=0, deadline=DEMO_DEADLINE)
+    robot, human = agents = spec.agents()
+    episode = run_episode(spec, 0, agents)
+    trials, length = episode.trials, int(episode.trials.lengths[0])
+    figures = out / "figures"
+    log(f"wrote {plot_episode(trials, 0, figures / 'episode.png', title='planner (blue) vs a simulated driver (red)')}")
+    plans = [(t, plan.robot, plan.human[:32]) for t, plan in zip(robot.plan_steps, robot.plans)]
+    roles = tuple(str(r) for r in trials.roles[0])
+    log(f"wrote {animate_episode(trials.states[0, :, :length], roles, figures / 'episode.gif', plans, title='planner vs simulated driver')}")

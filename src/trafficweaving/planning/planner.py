@@ -173,8 +173,13 @@ class Planner:
             n1 = int(np.clip(0.4 * left() * self._rate() // count, 1, n1))
         first_cost = torch.full((count,), float("inf"), dtype=self.dtype, device=self.device)
         chunk = count if deadline is None else max(256, int(0.05 * self._rate() / n1))
+        # with a deadline the candidates are scored in random order, so that whatever is scored in
+        # time is a sample of every action choice (in index order it would be the first few
+        # window-1 actions only: one lane and one acceleration)
+        order = (torch.arange(count, device=self.device) if deadline is None
+                 else torch.randperm(count, generator=self.generator, device=self.device))
         for start in range(0, count, chunk):
-            cand = torch.arange(start, min(start + chunk, count), device=self.device)
+            cand = order[start:start + chunk]
             if deadline is not None and start > 0 and 1.5 * n1 * len(cand) / self._rate() > left() - 0.01:
                 break
             scores, _ = self._scores(cand, n1, robot, human_present, cost)
