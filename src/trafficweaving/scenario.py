@@ -140,7 +140,7 @@ def check_validity(states: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray,
     recorded = steps[None, :] < lengths[:, None]  # [n, T]
     x, y = states[..., 0], states[..., 1]  # [n, 2, T]
 
-    collide = (np.abs(x[:, 0] - x[:, 1]) < COLLISION_DX) & (np.abs(y[:, 0] - y[:, 1]) < COLLISION_DY)
+    collide = colliding(states[:, 0], states[:, 1])
     collision = (collide & recorded).any(axis=1)
 
     past = (x >= CUTOFF_X) & recorded[:, None, :]  # [n, 2, T]
@@ -149,8 +149,7 @@ def check_validity(states: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray,
     cut = first_past.min(axis=1)  # [n]
 
     upto_cut = steps[None, :] <= np.minimum(cut, lengths - 1)[:, None]  # [n, T]
-    on_road = (y >= ROAD_Y_MIN) & (y <= ROAD_Y_MAX)
-    off_road = (~on_road & upto_cut[:, None, :]).any(axis=(1, 2))
+    off_road = (~on_road(y) & upto_cut[:, None, :]).any(axis=(1, 2))
 
     swapped = swapped_before_cutoff(states, lengths)  # [n, 2]
 
@@ -173,7 +172,24 @@ def swapped_before_cutoff(states: np.ndarray, lengths: np.ndarray) -> np.ndarray
     last = np.where(past.any(axis=2), np.maximum(past.argmax(axis=2) - 1, 0), lengths[:, None] - 1)  # [n, 2]
     y = states[..., 1]
     y_end = np.take_along_axis(y, last[..., None], axis=2)[..., 0]
-    return (SWAP_THRESHOLD_Y - y[:, :, 0]) * (SWAP_THRESHOLD_Y - y_end) < 0
+    return across_divider(y[:, :, 0], y_end)
+
+
+def colliding(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Whether two cars collide, for their states ``a``, ``b`` ``[..., 6]`` at the same steps:
+    ``|Δx| < COLLISION_DX`` and ``|Δy| < COLLISION_DY``; shape ``[...]``."""
+    return (np.abs(a[..., 0] - b[..., 0]) < COLLISION_DX) & (np.abs(a[..., 1] - b[..., 1]) < COLLISION_DY)
+
+
+def on_road(y: np.ndarray) -> np.ndarray:
+    """Whether lateral positions ``y`` (m, any shape) are on the road, ``ROAD_Y_MIN <= y <= ROAD_Y_MAX``."""
+    return (y >= ROAD_Y_MIN) & (y <= ROAD_Y_MAX)
+
+
+def across_divider(y_start: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Whether a car at ``y`` is on the other side of ``SWAP_THRESHOLD_Y`` from where it started,
+    ``y_start`` (m; broadcasting): it has swapped lanes."""
+    return (SWAP_THRESHOLD_Y - y_start) * (SWAP_THRESHOLD_Y - y) < 0
 
 
 def lane_of(y: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scenario import SWAP_THRESHOLD_Y, TCO_VALUES
+from ..scenario import TCO_VALUES, across_divider
 from .trials import TrialSet
 
 TABLE1_PAPER = {
@@ -25,7 +25,7 @@ def swap_step(trials: TrialSet) -> np.ndarray:
     """Per trial, the first step at which both cars are across ``SWAP_THRESHOLD_Y`` from where they
     started (``[n]``); the last recorded step when that never happens."""
     y = trials.states[..., 1]  # [n, 2, T]
-    across = (SWAP_THRESHOLD_Y - y[:, :, :1]) * (SWAP_THRESHOLD_Y - y) < 0
+    across = across_divider(y[:, :, :1], y)
     both = across.all(axis=1)  # [n, T]
     both &= np.arange(y.shape[2])[None, :] < trials.lengths[:, None]
     if both.size == 0:  # no trials (or no steps): nothing to find

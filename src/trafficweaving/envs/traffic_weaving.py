@@ -44,17 +44,15 @@ from ..data.trials import PLAUSIBLE_RANGES
 from ..planning.candidates import ACCELERATIONS, N_ACTIONS, STEPS_PER_WINDOW, rollout
 from ..planning.costs import PaperCost
 from ..scenario import (
-    COLLISION_DX,
-    COLLISION_DY,
     CUTOFF_X,
     DT,
     LANE_CENTRE_Y,
     LANES,
-    ROAD_Y_MAX,
-    ROAD_Y_MIN,
     STATE_NAMES,
-    SWAP_THRESHOLD_Y,
+    across_divider,
+    colliding,
     lane_of,
+    on_road,
     study_initial_conditions,
 )
 from ..sim.drivers import MAX_LATERAL_ACCEL
@@ -133,14 +131,13 @@ class TrafficWeavingEnv(gym.Env):
                 break
             human = self.human.act(self.world.history)[0]
             self.world.step(np.stack([robot[k], human])[None])
-        window = torch.as_tensor(self.world.states[0, :, first: self.world.t + 1])  # [2, steps, 6]
+        now = self.world.states[0, :, first: self.world.t + 1]  # [2, steps, 6]: the window's steps
+        window = torch.as_tensor(now)
         reward = -float(sum(term.sum() for term in self.cost.terms(window[ROBOT], window[HUMAN]).values()))
-        now = self.world.states[0, :, first: self.world.t + 1]  # [2, steps, 6]
-        self.collided |= bool(((np.abs(now[ROBOT, :, 0] - now[HUMAN, :, 0]) < COLLISION_DX)
-                               & (np.abs(now[ROBOT, :, 1] - now[HUMAN, :, 1]) < COLLISION_DY)).any())
-        self.off_road |= bool(((now[..., 1] < ROAD_Y_MIN) | (now[..., 1] > ROAD_Y_MAX)).any())
+        self.collided |= bool(colliding(now[ROBOT], now[HUMAN]).any())
+        self.off_road |= bool((~on_road(now[..., 1])).any())
         robot_now = self.world.states[0, ROBOT, self.world.t]
-        self.swapped = bool((SWAP_THRESHOLD_Y - self.start_y) * (SWAP_THRESHOLD_Y - robot_now[1]) < 0)
+        self.swapped = bool(across_divider(self.start_y, robot_now[1]))
         missed = robot_now[0] >= CUTOFF_X and not self.swapped
         ended = not self.world.running[0]
         terminated = self.collided or self.off_road or missed or ended
