@@ -11,13 +11,15 @@ Measured in one run, same process, same model:
   decoder's matrix-multiply FLOPs per plan over the plan's time);
 * ``bfloat16_seconds``: our planner with the decoder's matrix multiplies in bfloat16;
 * real-time mode (``--deadline``, default 0.3 s) on recorded situations (simulated human–human
-  trials, the other car playing the robot): how often its first free window equals the full-budget
+  trials, the other car playing the robot; or, with ``--episodes``, the closest calls of
+  closed-loop episodes, where choices matter most): how often its first free window equals the full-budget
   plan's, its expected-cost regret against the full-budget choice (both re-scored with 2048 fresh
   samples; also relative to the spread of expected costs over the candidates), and, as the noise
   floor, the same for a second full-budget plan with another seed;
   the same two figures for full-budget plans in bfloat16.
 
     python benchmarks/bench_plan.py [--threads N] [--situations 18] [--deadline 0.3] [--model default]
+                                    [--episodes SIMULATE_OUT_DIR]
 
 ``--threads`` is an integer in 1..os.cpu_count(), ``--repeats`` and ``--situations`` positive.
 """
@@ -28,20 +30,23 @@ import argparse
 import json
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from trafficweaving.sim.generate import generate_trials
+from trafficweaving.data.trials import load_trials
 from trafficweaving.dynamics import future_states
 from trafficweaving.errors import InputError
 from trafficweaving.model.checkpoint import load_model
 from trafficweaving.model.cvae import ACCEL, STATE_DIM
 from trafficweaving.model.predictor import PRECISIONS, HumanPredictor
-from trafficweaving.planning.candidates import ACCELERATIONS, Action, robot_candidates
+from trafficweaving.planning.candidates import ACCELERATIONS, STEPS_PER_WINDOW, Action, robot_candidates
 from trafficweaving.planning.costs import PaperCost
+from trafficweaving.planning.mpc import HOLD_STEPS
 from trafficweaving.planning.planner import Budget, Planner, example_history
 from trafficweaving.scenario import HORIZON, LANE_CENTRE_Y, lane_of
+from trafficweaving.sim.generate import generate_trials
 from trafficweaving.validate import integer, positive_seconds, thread_count
 
 
@@ -117,6 +122,30 @@ def situations(count: int, seed: int = 7):
     return [out[k] for k in sorted(rng.choice(len(out), size=min(count, len(out)), replace=False))]
 
 
+def closest_calls(folder: Path, count: int):
+    """(history, first action, cost) at the closest calls of closed-loop episodes (the episode logs
+    of ``trafficweaving simulate --out FOLDER``): the robot's plan steps (every 3 steps from step
+    8) in the second before each episode's smallest robot–human distance, from the ``count``
+    closest episodes; the fixed window as in :func:`situations`."""
+    calls = []
+    for path in sorted(Path(folder).glob("episodes/episode_*.parquet")):
+        trials = load_trials(path)
+        car = trials.metadata["episode"]["robot_car"]
+        robot, human = trials.trajectory(0, car), trials.trajectory(0, 1 - car)
+        goal = "right" if trials.start_lanes[0, car] == "left" else "left"
+        distance = np.hypot(robot[:, 0] - human[:, 0], robot[:, 1] - human[:, 1])
+        closest = int(np.argmin(distance))
+        steps = [t for t in range(HOLD_STEPS, closest, STEPS_PER_WINDOW) if closest - t <= 10]
+        calls += [(distance[closest], robot, human, t, goal) for t in steps]
+    calls.sort(key=lambda call: call[0])
+    out = []
+    for _, robot, human, t, goal in calls[:count]:
+        accel = min(ACCELERATIONS, key=lambda a: abs(a - robot[t + 1, 4]))
+        out.append((np.stack([robot[: t + 1], human[: t + 1]], 1), Action.of(accel, str(lane_of(robot[t, 1]))).index,
+                    PaperCost(goal_y=LANE_CENTRE_Y[goal])))
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
@@ -126,6 +155,8 @@ def main() -> None:
     parser.add_argument("--deadline", type=float, default=0.3)
     parser.add_argument("--realtime-precision", default="auto", choices=PRECISIONS)
     parser.add_argument("--skip-naive", action="store_true")
+    parser.add_argument("--episodes", type=Path, help="take the real-time situations from the closest calls of "
+                        "these closed-loop episodes (simulate's --out folder) instead of simulated trials")
     args = parser.parse_args()
     try:
         threads = thread_count("--threads", args.threads)
@@ -159,7 +190,8 @@ def main() -> None:
     agree, regret, agree_full, regret_full, agree_bf16, regret_bf16, late, spread = [], [], [], [], [], [], [], []
     realtime = Planner(HumanPredictor(model, precision=args.realtime_precision), budget, seed=1)
     realtime.plan(history, first, cost, deadline=args.deadline)  # warm-up: measures its speed
-    for k, (hist, fixed, c) in enumerate(situations(args.situations)):
+    chosen = situations(args.situations) if args.episodes is None else closest_calls(args.episodes, args.situations)
+    for k, (hist, fixed, c) in enumerate(chosen):
         full = Planner(exact, budget, seed=100 + k).plan(hist, fixed, c)
         other = Planner(exact, budget, seed=200 + k).plan(hist, fixed, c)
         rt = realtime.plan(hist, fixed, c, deadline=args.deadline)

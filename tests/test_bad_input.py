@@ -282,10 +282,26 @@ def _start(tmp_path: Path, *argv: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+def _wait_until_busy(process: subprocess.Popen, cpu_seconds: float, timeout: float = 60.0) -> None:
+    """Wait until ``process`` has used ``cpu_seconds`` of CPU (read from /proc; 4 s of wall time
+    where there is no /proc)."""
+    stat = Path(f"/proc/{process.pid}/stat")
+    if not stat.exists():
+        time.sleep(4)
+        return
+    ticks, began = os.sysconf("SC_CLK_TCK"), time.monotonic()
+    while time.monotonic() - began < timeout:
+        fields = stat.read_text().rsplit(")", 1)[1].split()  # after "pid (name)": state is field 3
+        if (int(fields[11]) + int(fields[12])) / ticks >= cpu_seconds:  # utime + stime (fields 14, 15)
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"the command used less than {cpu_seconds} s of CPU in {timeout} s")
+
+
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_sigterm_and_ctrl_c_end_quietly_by_their_signal_and_leave_no_file(tmp_path, signum):
     process = _start(tmp_path, "generate", "--trials", "200000", "--out", "big.parquet")  # ~30 s of work
-    time.sleep(4)  # imports done, generating
+    _wait_until_busy(process, cpu_seconds=3.0)  # imports done, generating (however loaded the machine is)
     process.send_signal(signum)
     _, err = process.communicate(timeout=60)
     assert process.returncode == -signum  # ended by the signal itself: the shell reports 128 + signum

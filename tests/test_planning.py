@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from trafficweaving.dynamics import future_states, integrate_trapezoid
+from trafficweaving.model.constant_velocity import ConstantVelocityHuman
 from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.model.predictor import HumanPredictor
 from trafficweaving.model.sampler import BatchedRollout
@@ -13,7 +14,7 @@ from trafficweaving.planning.candidates import (ACCELERATIONS, N_ACTIONS, N_CAND
                                                 robot_candidates, rollout)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
-from trafficweaving.planning.planner import Budget, Planner, example_history
+from trafficweaving.planning.planner import SCREENING_SAMPLES, Budget, Planner, example_history
 from trafficweaving.planning.steering import optimal_time, steer, steering_cost
 from trafficweaving.scenario import DT, HORIZON, LANE_CENTRE_Y
 from trafficweaving.sim.world import World
@@ -277,13 +278,39 @@ def test_real_time_mode_returns_within_the_deadline():
         assert plan.first_stage_samples >= 1 and np.isfinite(plan.first_stage_cost).any()
 
 
-def test_a_deadline_too_short_for_every_candidate_still_weighs_every_action_choice():
-    planner = Planner(HumanPredictor(CVAE()))
-    plan = planner.plan(_history(), Action.of(0.0, "right").index, PaperCost(goal_y=LEFT), deadline=1e-3)
-    scored = np.isfinite(plan.first_stage_cost)
-    assert 0 < scored.sum() < len(scored)  # only part of stage 1 was scored in time
-    assert set(plan.candidates.actions[scored, 1]) == set(range(8))  # every window-1 action among them
-    assert set(plan.candidates.actions[scored, 2]) == set(range(8))
+class _RecordingHuman(ConstantVelocityHuman):
+    """The constant-velocity human, keeping the robot futures of every ``prepare``."""
+
+    def __init__(self):
+        super().__init__()
+        self.prepared = []
+
+    def prepare(self, history, robot_futures) -> None:
+        super().prepare(history, robot_futures)
+        self.prepared.append(np.asarray(robot_futures))
+
+
+def test_real_time_screening_conditions_on_each_window_1_action_held_then_on_the_finalists():
+    human = _RecordingHuman()
+    history, fixed = _history(), Action.of(0.0, "right").index
+    plan = Planner(human).plan(history, fixed, PaperCost(goal_y=LEFT), deadline=1e-3)
+    held = np.array([[fixed] + [a] * (WINDOWS - 1) for a in range(N_ACTIONS)])
+    screening, finalists = human.prepared
+    np.testing.assert_array_equal(screening, rollout(history[-1, 0], held))
+    np.testing.assert_array_equal(finalists, plan.candidates.states[plan.finalists])
+    assert plan.first_stage_samples == SCREENING_SAMPLES and plan.second_stage_samples >= 1  # one round at least
+    assert np.isfinite(plan.first_stage_cost).all()  # every candidate screened, however short the deadline
+
+
+def test_screening_is_exact_for_a_human_that_ignores_the_robot():
+    # the constant-velocity human's future does not depend on the robot's: the shared futures are
+    # every candidate's own, so the screened stage 1 costs what the paper's stage 1 costs
+    planner, history, cost = Planner(ConstantVelocityHuman()), _history(), PaperCost(goal_y=LEFT)
+    fixed = Action.of(0.0, "right").index
+    screened = planner.plan(history, fixed, cost, deadline=1.0)
+    full = planner.plan(history, fixed, cost, budget=Budget(1, 32, 1))
+    np.testing.assert_allclose(screened.first_stage_cost, full.first_stage_cost, rtol=1e-5, atol=1e-3)
+    assert screened.index == full.index
 
 
 def test_mpc_holds_then_replans_every_window_with_the_fixed_first_window():

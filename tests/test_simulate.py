@@ -16,12 +16,11 @@ from trafficweaving.cli import main
 from trafficweaving.data.trials import TrialSet, load_trials
 from trafficweaving.errors import InputError
 from trafficweaving.planning.planner import Budget
-from trafficweaving.scenario import (COLLISION_DX, CUTOFF_X, DT, LANE_CENTRE_Y, START_X, SWAP_THRESHOLD_Y,
+from trafficweaving.scenario import (COLLISION_DX, CUTOFF_X, DT, LANE_CENTRE_Y, REPLAN_PERIOD_S, START_X, SWAP_THRESHOLD_Y,
                                      study_initial_conditions)
 from trafficweaving.sim.batch import EpisodeFailed, episode_path, simulate
 from trafficweaving.sim.episodes import EpisodeSpec, run_episode
-from trafficweaving.sim.metrics import (PLANNING_PERIOD_S, Z95, aggregate, episode_metrics, latency_summary,
-                                        mean_interval, wilson_interval)
+from trafficweaving.sim.metrics import Z95, aggregate, episode_metrics, latency_summary, mean_interval, wilson_interval
 
 LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
 T = 80  # steps of a hand-built record: 8 s at 30 m/s from START_X ends 95 m past the cutoff
@@ -110,7 +109,7 @@ def test_accel_and_jerk_rms():
 
 
 def test_latency_summary():
-    s = latency_summary([0.1, 0.2, PLANNING_PERIOD_S + 0.01, 0.5])
+    s = latency_summary([0.1, 0.2, REPLAN_PERIOD_S + 0.01, 0.5])
     assert s["plans"] == 4 and s["median_s"] == pytest.approx(0.255) and s["deadline_misses"] == 2
     assert latency_summary([]) == {"plans": 0, "median_s": None, "p99_s": None, "deadline_misses": 0}
 
@@ -318,6 +317,19 @@ def test_cli_json(tmp_path, capsys):
                  "--out", str(tmp_path)]) == 0
     text = capsys.readouterr().out
     assert "2 episodes" in text and "2 reused" in text and "success" in text
+
+
+def test_cli_defaults_to_the_real_time_planner_in_a_simulation_folder(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "--episodes", "1", "--human", "synthetic", "--json"]) == 0
+    payload = json.loads(capsys.readouterr().out)
+    assert payload["robot"] == "planner" and payload["deadline"] == REPLAN_PERIOD_S
+    assert (tmp_path / "simulation" / "summary.json").is_file()
+    assert main(["simulate", "--episodes", "1", "--robot", "rules", "--human", "synthetic", "--full-budget",
+                 "--out", "rules", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["deadline"] is None
+    assert main(["simulate", "--episodes", "1", "--full-budget", "--deadline", "0.2"]) == 2
+    assert "not allowed with argument" in capsys.readouterr().err
 
 
 @pytest.mark.filterwarnings("ignore:overflow encountered")

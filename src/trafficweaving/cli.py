@@ -17,7 +17,7 @@ from pathlib import Path
 
 from .atomic import check_output_file, check_output_folder
 from .errors import InputError
-from .scenario import HORIZON, MIN_HISTORY, MIN_TRIAL_STEPS
+from .scenario import HORIZON, MIN_HISTORY, MIN_TRIAL_STEPS, REPLAN_PERIOD_S
 
 SEED_MAX = 2**32 - 1
 """Largest ``--seed`` (NumPy and PyTorch accept every seed in 0..2³²-1 on every platform)."""
@@ -564,19 +564,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="closed-loop episodes of a robot against a human, with metrics and CIs")
     p.add_argument("--episodes", type=POSITIVE, required=True, help="episodes 0..N-1 (each from --seed and its index)")
-    p.add_argument("--robot", required=True, help="planner, planner-cv or rules")
+    p.add_argument("--robot", default="planner", help="planner (default), planner-cv or rules")
     p.add_argument("--human", required=True, help="synthetic, model:SPEC, replay:FILE or replay:FILE#K")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--model", default="default", help="the planner's human model: checkpoint path, default, or authors:PATH")
-    p.add_argument("--deadline", type=_float_in(0, 3600),
-                   help="the planner's real-time mode: plan within this many seconds (default: fixed sample counts)")
+    timing = p.add_mutually_exclusive_group()
+    timing.add_argument("--deadline", type=_float_in(0, 3600), default=REPLAN_PERIOD_S,
+                        help=f"the planner's real-time mode: plan within this many seconds (default {REPLAN_PERIOD_S}, "
+                             f"the replanning period)")
+    timing.add_argument("--full-budget", dest="deadline", action="store_const", const=None,
+                        help="plan with the paper's fixed sample counts however long it takes (~1-2 s a plan on a CPU)")
     p.add_argument("--workers", type=POSITIVE, default=1, help="episodes run at once (default 1: in this process)")
     p.add_argument("--engine", choices=("local", "ray"), default="local",
                    help="local: a process pool; ray: Ray tasks (pip install 'trafficweaving[ray]')")
     p.add_argument("--address", help="with --engine ray: the Ray cluster to join (default: a new local instance)")
     p.add_argument("--device", default="cpu", help="the models' device: cpu (default), auto, cuda, cuda:N")
-    p.add_argument("--out", required=True, help="output folder: episodes/episode_NNNNNN.parquet and summary.json; "
-                                                "a rerun resumes")
+    p.add_argument("--out", default="simulation", help="output folder (default ./simulation): "
+                   "episodes/episode_NNNNNN.parquet and summary.json; a rerun resumes")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_simulate)
 

@@ -61,6 +61,10 @@ TCO_VALUES = (1.0, 2.0, 3.0)
 
 HORIZON = 15
 """Steps of the future the human model predicts and the planner plans (1.5 s; paper §IV-A)."""
+REPLAN_STEPS = 3
+"""The robot replans every 3 steps and holds each action for as long (paper §V-C)."""
+REPLAN_PERIOD_S = REPLAN_STEPS * DT
+"""The replanning period, s (0.3 s): a plan that takes longer misses its deadline."""
 MIN_HISTORY = 5
 """Fewest history steps a prediction is made from (steps 0..t with ``t >= 4``), as in the paper."""
 MIN_TRIAL_STEPS = MIN_HISTORY + HORIZON

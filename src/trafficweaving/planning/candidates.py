@@ -14,13 +14,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..dynamics import robot_longitudinal
-from ..scenario import DT, HORIZON, LANE_CENTRE_Y, LANES
+from ..scenario import DT, HORIZON, LANE_CENTRE_Y, LANES, REPLAN_STEPS
 from .steering import steer
 
 ACCELERATIONS = (0.0, 4.0, -3.0, -6.0)
 """The longitudinal actions, m/s²; the lateral ones are the :data:`~trafficweaving.scenario.LANES`
 (steering to the lane centre)."""
-STEPS_PER_WINDOW = 3
+STEPS_PER_WINDOW = REPLAN_STEPS
 """Steps an action is held (0.3 s): the replanning period."""
 if HORIZON % STEPS_PER_WINDOW:
     raise ImportError(f"the horizon of {HORIZON} steps is not a whole number of {STEPS_PER_WINDOW}-step windows")

@@ -33,19 +33,29 @@ class PaperCost:
     lane_weight: float = 500.0
     separation_weight: float = 100.0
 
-    def terms(self, robot: torch.Tensor, human: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Undiscounted per-step terms ``[..., 15]`` (broadcast shape of the inputs)."""
+    def _pair_terms(self, robot: torch.Tensor, human: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The terms that depend on both cars, ``[..., 15]`` (broadcast shape of the inputs)."""
         ds, dtau, dsd = robot[..., 0] - human[..., 0], robot[..., 1] - human[..., 1], robot[..., 2] - human[..., 2]
         close = (ds.abs() < 8.0) & (dtau.abs() < 2.0)
         collision = self.collision_weight * close * (9.25 - torch.sqrt(ds * ds + dtau * dtau))
-        effort = self.effort_weight * robot[..., 4] ** 2
-        urgency = torch.clamp(1.5 + robot[..., 0] / 150.0, max=1.0)
-        lane = self.lane_weight * urgency * (robot[..., 1] - self.goal_y).abs()
         separation = -self.separation_weight * torch.clamp(ds * dsd, min=0.0, max=1.0)
-        return {"collision": collision, "effort": effort.expand_as(collision), "lane": lane.expand_as(collision),
-                "separation": separation}
+        return {"collision": collision, "separation": separation}
+
+    def _robot_terms(self, robot: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The terms of the robot's future alone, ``[..., 15]`` (shape of ``robot`` without its last axis)."""
+        urgency = torch.clamp(1.5 + robot[..., 0] / 150.0, max=1.0)
+        return {"effort": self.effort_weight * robot[..., 4] ** 2,
+                "lane": self.lane_weight * urgency * (robot[..., 1] - self.goal_y).abs()}
+
+    def terms(self, robot: torch.Tensor, human: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Undiscounted per-step terms ``[..., 15]`` (broadcast shape of the inputs)."""
+        pair, own = self._pair_terms(robot, human), self._robot_terms(robot)
+        shape = pair["collision"].shape
+        return {"collision": pair["collision"], "effort": own["effort"].expand(shape), "lane": own["lane"].expand(shape),
+                "separation": pair["separation"]}
 
     def __call__(self, robot: torch.Tensor, human: torch.Tensor) -> torch.Tensor:
         steps = robot.shape[-2]
         weights = self.discount ** torch.arange(1, steps + 1, dtype=robot.dtype, device=robot.device)
-        return sum(term for term in self.terms(robot, human).values()) @ weights
+        # the robot's own terms are summed once per robot future, not once per human future
+        return sum(self._pair_terms(robot, human).values()) @ weights + sum(self._robot_terms(robot).values()) @ weights

@@ -2,9 +2,13 @@
 
 Stage 1 scores every candidate robot future with a few sampled human responses each; stage 2
 re-scores the best ones with many samples; the best is executed. All counts are configurable.
-With a deadline, the same two stages run anytime: stage 1 with as many samples as the measured
-speed allows, then stage 2 in rounds until the time is spent, so a plan is always returned in
-time. The human is any :class:`HumanModel` (the CVAE's is
+
+With a deadline (real-time mode) stage 2 runs anytime, in rounds of samples until the time is
+spent, and stage 1 screens: a CPU cannot sample 4096 candidates' own human futures in 0.3 s (it
+would score each against one sample, or only some), so the candidates that share their first
+free window's action share :data:`SCREENING_SAMPLES` human futures, sampled conditioned on the
+candidate that holds that action (8 conditionings instead of 4096); the finalists are then
+re-scored against their own futures, as in the paper. The human is any :class:`HumanModel` (the CVAE's is
 :class:`~trafficweaving.model.predictor.HumanPredictor`).
 """
 
@@ -21,8 +25,12 @@ from .. import validate
 from ..dynamics import future_states
 from ..errors import InputError
 from ..scenario import DT, HORIZON, LANE_CENTRE_Y, STATE_NAMES
-from .candidates import N_ACTIONS, N_CANDIDATES, Candidates, robot_candidates
+from .candidates import N_ACTIONS, N_CANDIDATES, WINDOWS, Candidates, robot_candidates
 from .costs import Cost
+
+
+SCREENING_SAMPLES = 32
+"""Real-time mode: human futures per window-1 action shared by stage 1's candidates."""
 
 
 @runtime_checkable
@@ -30,10 +38,11 @@ class HumanModel(Protocol):
     """A model of the human the planner can sample from (the distribution of the human's future
     actions given the history and the robot's future, paper §II-A), in physical units.
 
-    ``prepare`` is called once per plan with the ``history [t+1, 2, 6]`` (robot, human states at
-    steps 0..t) and the candidate ``robot_futures [C, 15, 6]``; ``sample`` then returns human
-    accelerations ``[n, len(candidates), 15, 2]`` (m/s², ``[xdd, ydd]`` at steps t+1..t+15) for
-    candidate indices ``candidates [k]`` (a tensor on :attr:`device`), drawn with ``generator``.
+    ``prepare`` is called with the ``history [t+1, 2, 6]`` (robot, human states at steps 0..t) and
+    the robot futures a stage samples for, ``robot_futures [C, 15, 6]``; ``sample`` then returns
+    human accelerations ``[n, len(candidates), 15, 2]`` (m/s², ``[xdd, ydd]`` at steps
+    t+1..t+15) for indices ``candidates [k]`` into them (a tensor on :attr:`device`), drawn with
+    ``generator``.
     The planner's tensors live on :attr:`device` in :attr:`dtype`.
     """
 
@@ -119,27 +128,44 @@ class Planner:
         self.generator = torch.Generator(device=self.device).manual_seed(validate.integer("seed", seed, 0))
         self.rows_per_second: float | None = None  # measured futures sampled and scored per second
 
-    def _situation(self, history, first_action) -> tuple[Candidates, torch.Tensor, torch.Tensor]:
-        """The candidates from the checked ``history [t+1, 2, 6]`` with window 0 fixed to the
+    def _situation(self, history, first_action) -> tuple[np.ndarray, Candidates, torch.Tensor, torch.Tensor]:
+        """The checked ``history [t+1, 2, 6]``, the candidates from it with window 0 fixed to the
         checked ``first_action``, their states ``[C, 15, 6]`` and the human's present state ``[6]``
-        as tensors; prepares the human model for them."""
+        as tensors."""
         history = validate.history(history)
         candidates = robot_candidates(history[-1, 0], validate.integer("first_action", first_action, 0, N_ACTIONS - 1))
         robot = torch.as_tensor(candidates.states, dtype=self.dtype, device=self.device)
         human_present = torch.as_tensor(history[-1, 1], dtype=self.dtype, device=self.device)
-        self.human_model.prepare(history, candidates.states)
-        return candidates, robot, human_present
+        return history, candidates, robot, human_present
 
-    def _scores(self, cand: torch.Tensor, n: int, robot: torch.Tensor, human_present: torch.Tensor,
+    def _sample(self, prepared: torch.Tensor, n: int, human_present: torch.Tensor) -> torch.Tensor:
+        """``n`` sampled human futures ``[n, k, 15, 6]`` for the prepared robot futures ``prepared [k]``
+        (indices into the last ``prepare``)."""
+        actions = self.human_model.sample(prepared, n, self.generator)
+        return future_states(human_present, actions.to(self.dtype))
+
+    def _scores(self, prepared: torch.Tensor, robot: torch.Tensor, n: int, human_present: torch.Tensor,
                 cost: Cost) -> tuple[torch.Tensor, torch.Tensor]:
-        """Costs ``[n, len(cand)]`` of ``n`` sampled human futures for candidates ``cand``, and those futures."""
+        """Costs ``[n, k]`` of ``n`` sampled human futures for each of the robot futures ``robot [k,
+        15, 6]`` (prepared as ``prepared [k]``), and those futures; updates the measured rate."""
         start = time.perf_counter()
-        actions = self.human_model.sample(cand, n, self.generator)
-        human = future_states(human_present, actions.to(self.dtype))  # [n, C', 15, 6]
-        scores = cost(robot[cand].unsqueeze(0), human)
-        rate = n * len(cand) / max(time.perf_counter() - start, 1e-6)
+        human = self._sample(prepared, n, human_present)
+        scores = cost(robot.unsqueeze(0), human)
+        rate = n * len(prepared) / max(time.perf_counter() - start, 1e-6)
         self.rows_per_second = rate if self.rows_per_second is None else 0.7 * self.rows_per_second + 0.3 * rate
         return scores, human
+
+    def _screen(self, history: np.ndarray, candidates: Candidates, robot: torch.Tensor, human_present: torch.Tensor,
+                cost: Cost) -> torch.Tensor:
+        """Real-time stage 1: mean costs ``[C]`` of every candidate against :data:`SCREENING_SAMPLES`
+        human futures shared by the candidates with the same window-1 action, sampled conditioned on
+        the candidate that holds that action to the horizon."""
+        holding = np.arange(N_ACTIONS) * sum(N_ACTIONS ** w for w in range(WINDOWS - 1))  # [a, a, a, a] (action_sequences)
+        self.human_model.prepare(history, candidates.states[holding])
+        human = self._sample(torch.arange(N_ACTIONS, device=self.device), SCREENING_SAMPLES, human_present)
+        # action_sequences orders the candidates by their window-1 action: [N_ACTIONS, C / N_ACTIONS] groups
+        grouped = cost(robot.reshape(N_ACTIONS, -1, *robot.shape[1:]).unsqueeze(0), human.unsqueeze(2))
+        return grouped.mean(0).reshape(-1)
 
     @torch.no_grad()
     def plan(self, history: np.ndarray, first_action: int, cost: Cost, budget: Budget | None = None,
@@ -147,14 +173,15 @@ class Planner:
         """Plan from ``history [t+1, 2, 6]`` (robot, human states at steps 0..t, physical units)
         with window 0 fixed to ``first_action``.
 
-        Without ``deadline``, ``budget`` (default: the planner's) is spent in full. With
-        ``deadline`` (s), the plan returns within it: stage 1 takes as many samples per candidate
-        as the measured speed allows (at most the budget's, scoring candidates in chunks and
-        leaving the rest unscored if time runs out), stage 2 runs in rounds of samples until the
-        time is spent. ``keep_samples``: how many of the chosen candidate's human futures the plan
-        keeps. Bad arguments raise :class:`~trafficweaving.errors.InputError`: ``history`` must be
-        finite with at least ``MIN_HISTORY`` steps, ``first_action`` an integer in
-        ``0..N_ACTIONS-1``, ``deadline`` None or finite > 0.
+        Without ``deadline``, ``budget`` (default: the planner's) is spent in full, as in the
+        paper: stage 1 scores every candidate against its own sampled human futures. With
+        ``deadline`` (s), the plan returns within it (once the screening is done): stage 1 screens
+        every candidate (:meth:`_screen`), then stage 2 samples the finalists' own human futures in
+        rounds until the time is spent (at most the budget's). ``keep_samples``: how many of the
+        chosen candidate's human futures the plan keeps. Bad arguments raise
+        :class:`~trafficweaving.errors.InputError`: ``history`` must be finite with at least
+        ``MIN_HISTORY`` steps, ``first_action`` an integer in ``0..N_ACTIONS-1``, ``deadline`` None
+        or finite > 0.
         """
         clock = time.perf_counter()
         check_cost(cost)
@@ -163,41 +190,35 @@ class Planner:
         keep_samples = validate.integer("keep_samples", keep_samples, 0)
         left = (lambda: deadline - (time.perf_counter() - clock)) if deadline is not None else (lambda: np.inf)  # noqa: E731
         timings = {}
-        candidates, robot, human_present = self._situation(history, first_action)
-        timings["candidates_and_encoding"] = time.perf_counter() - clock
+        history, candidates, robot, human_present = self._situation(history, first_action)
+        timings["candidates"] = time.perf_counter() - clock
         count = len(candidates)
 
-        # stage 1: every candidate, n1 samples each, in chunks while time allows
-        n1 = budget.first_stage_samples
+        # stage 1: every candidate, screened (real time) or with n1 samples of its own each (paper)
         if deadline is not None:
-            n1 = int(np.clip(0.4 * left() * self._rate() // count, 1, n1))
-        first_cost = torch.full((count,), float("inf"), dtype=self.dtype, device=self.device)
-        chunk = count if deadline is None else max(256, int(0.05 * self._rate() / n1))
-        # with a deadline the candidates are scored in random order, so that whatever is scored in
-        # time is a sample of every action choice (in index order it would be the first few
-        # window-1 actions only: one lane and one acceleration)
-        order = (torch.arange(count, device=self.device) if deadline is None
-                 else torch.randperm(count, generator=self.generator, device=self.device))
-        for start in range(0, count, chunk):
-            cand = order[start:start + chunk]
-            if deadline is not None and start > 0 and 1.5 * n1 * len(cand) / self._rate() > left() - 0.01:
-                break
-            scores, _ = self._scores(cand, n1, robot, human_present, cost)
-            first_cost[cand] = scores.mean(0)
-        scored = int(torch.isfinite(first_cost).sum())
+            first_cost, n1 = self._screen(history, candidates, robot, human_present, cost), SCREENING_SAMPLES
+        else:
+            self.human_model.prepare(history, candidates.states)
+            n1 = budget.first_stage_samples
+            first_cost = self._scores(torch.arange(count, device=self.device), robot, n1, human_present, cost)[0].mean(0)
         timings["first_stage"] = time.perf_counter() - clock - sum(timings.values())
 
-        # stage 2: the finalists, n2 samples each, in rounds while time allows
-        k = min(budget.finalists, scored)
+        # stage 2: the finalists, n2 samples of their own each, in rounds while time allows (one at least)
+        k = budget.finalists
         finalists = torch.topk(first_cost, k, largest=False).indices
+        if deadline is not None:
+            self.human_model.prepare(history, candidates.states[finalists.cpu().numpy()])
+            prepared = torch.arange(k, device=self.device)
+        else:
+            prepared = finalists
         n2 = budget.second_stage_samples
         total, used, kept = torch.zeros(k, dtype=self.dtype, device=self.device), 0, []
-        round_size = n2 if deadline is None else max(8, min(n2, 64))
+        round_size = n2 if deadline is None else min(n2, 16)
         while used < n2:
             n = min(round_size, n2 - used)
-            if deadline is not None and 1.5 * n * k / self._rate() > left() - 0.01:
+            if used and 1.5 * n * k / self._rate() > left() - 0.01:
                 break
-            scores, human = self._scores(finalists, n, robot, human_present, cost)
+            scores, human = self._scores(prepared, robot[finalists], n, human_present, cost)
             total += scores.sum(0)
             used += n
             kept.append(human)
@@ -206,11 +227,12 @@ class Planner:
         index = int(finalists[best])
         human = torch.cat(kept, 0)[:keep_samples, best] if kept else torch.zeros((0, HORIZON, len(STATE_NAMES)))
         timings["second_stage"] = time.perf_counter() - clock - sum(timings.values())
+        futures = (N_ACTIONS if deadline is not None else count) * n1 + used * k
         return Plan(
             actions=candidates.actions[index], index=index, robot=candidates.states[index], candidates=candidates,
             first_stage_cost=first_cost.cpu().numpy(), finalists=finalists.cpu().numpy(),
             second_stage_cost=second_cost.cpu().numpy(), human=human.cpu().double().numpy(),
-            futures=n1 * scored + used * k, seconds=time.perf_counter() - clock,
+            futures=futures, seconds=time.perf_counter() - clock,
             first_stage_samples=n1, second_stage_samples=used, timings=timings)
 
     @torch.no_grad()
@@ -220,10 +242,13 @@ class Planner:
         futures ``[samples, k, 15, 6]`` (for re-scoring a choice and for figures). Arguments are
         checked as by :meth:`plan`."""
         check_cost(cost)
-        indices = torch.as_tensor(validate.indices("indices", indices, N_CANDIDATES), device=self.device)
+        indices = validate.indices("indices", indices, N_CANDIDATES)
         samples = validate.integer("samples", samples, 1)
-        _, robot, human_present = self._situation(history, first_action)
-        scores, human = self._scores(indices, samples, robot, human_present, cost)
+        history, candidates, robot, human_present = self._situation(history, first_action)
+        self.human_model.prepare(history, candidates.states[indices])
+        chosen = torch.as_tensor(indices, device=self.device)
+        scores, human = self._scores(torch.arange(len(chosen), device=self.device), robot[chosen], samples,
+                                     human_present, cost)
         return scores.mean(0).cpu().double().numpy(), human.cpu().double().numpy()
 
     def _rate(self) -> float:

@@ -48,13 +48,10 @@ import numpy as np
 import torch
 from scipy import stats
 
-from ..planning.candidates import STEPS_PER_WINDOW
 from ..planning.costs import PaperCost
-from ..scenario import (COLLISION_DY, CUTOFF_X, DT, LANE_CENTRE_Y, VALIDITY_REASONS, check_validity, lane_of,
-                        swapped_before_cutoff)
+from ..scenario import (COLLISION_DY, CUTOFF_X, DT, LANE_CENTRE_Y, REPLAN_PERIOD_S, VALIDITY_REASONS, check_validity,
+                        lane_of, swapped_before_cutoff)
 
-PLANNING_PERIOD_S = STEPS_PER_WINDOW * DT
-"""The replanning period, s (0.3 s): a plan that takes longer misses its deadline."""
 Z95 = float(stats.norm.ppf(0.975))
 """Two-sided 95 % standard normal quantile (1.96)."""
 
@@ -69,12 +66,12 @@ def near_collision_steps(robot: np.ndarray, human: np.ndarray) -> np.ndarray:
 
 def latency_summary(latencies: Sequence[float]) -> dict:
     """``plans``, ``median_s``, ``p99_s`` (None without plans) and ``deadline_misses`` (plans
-    longer than :data:`PLANNING_PERIOD_S`) of planner latencies in seconds."""
+    longer than :data:`REPLAN_PERIOD_S`) of planner latencies in seconds."""
     values = np.asarray(latencies, dtype=float)
     if not len(values):
         return {"plans": 0, "median_s": None, "p99_s": None, "deadline_misses": 0}
     return {"plans": len(values), "median_s": float(np.median(values)), "p99_s": float(np.percentile(values, 99)),
-            "deadline_misses": int((values > PLANNING_PERIOD_S).sum())}
+            "deadline_misses": int((values > REPLAN_PERIOD_S).sum())}
 
 
 def _rms(values: np.ndarray) -> float:
@@ -201,7 +198,7 @@ def aggregate(records: Sequence[dict]) -> dict:
     latency = latency_summary([s for r in records for s in r["latencies_s"]])
     summary["planner_latency_s"] = {"median": latency["median_s"], "p99": latency["p99_s"], "plans": latency["plans"]}
     summary["deadline_misses"] = latency["deadline_misses"]
-    summary["planning_period_s"] = PLANNING_PERIOD_S
+    summary["planning_period_s"] = REPLAN_PERIOD_S
 
     groups: dict[tuple, list[dict]] = {}
     for record in records:
