@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 OUT    ?= out
 
-.PHONY: demo test install bench clean
+.PHONY: demo test install bench drive drive-screenshot clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,14 @@ bench: install
 	$(PY) benchmarks/bench_generate.py
 	$(PY) benchmarks/bench_train.py
 	$(PY) benchmarks/bench_plan.py
+	$(PY) benchmarks/bench_drive.py
+
+drive: install
+	$(VENV)/bin/trafficweaving drive
+
+# docs/figures/drive.png: the browser test's screenshot (needs /usr/bin/chromium)
+drive-screenshot: install
+	TRAFFICWEAVING_DRIVE_SCREENSHOT=docs/figures/drive.png $(PY) -m pytest -q tests/test_web_browser.py
 
 clean:
 	rm -rf $(VENV) $(OUT)

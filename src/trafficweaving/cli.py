@@ -430,6 +430,16 @@ def cmd_plot_episode(args) -> None:
           + (f" ({payload['plans_drawn']} plans drawn)" if gif is not None else ""))
 
 
+def cmd_drive(args) -> None:
+    """The browser human-in-the-loop app (:mod:`trafficweaving.web`)."""
+    from .web.server import serve
+    from .web.session import DriveConfig
+
+    config = DriveConfig(mode=args.mode, countdown_s=args.countdown, model=_model_spec(args.model, "--model"),
+                         deadline=args.deadline, threads=args.threads)
+    serve(config, args.host, args.port, check_output_folder(args.out, "--out"), open_browser=not args.no_browser)
+
+
 def cmd_demo(args) -> None:
     """The main job (:mod:`trafficweaving.demo`)."""
     from .demo import run_demo
@@ -455,6 +465,8 @@ def _add_schedule_options(p, steps: int) -> None:
 def build_parser() -> argparse.ArgumentParser:
     from .model.predictor import PRECISIONS
     from .planning.candidates import N_CANDIDATES
+    from .scenario import REPLAN_PERIOD_S
+    from .web.options import COUNTDOWN_S, MODES, PLAN_DEADLINE_S
 
     parser = _Parser(prog="trafficweaving", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -592,6 +604,24 @@ def build_parser() -> argparse.ArgumentParser:
                                  "and sampled human futures (the episode is run again to recover them)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_plot_episode)
+
+    p = sub.add_parser("drive", help="drive the human car against the planner in the browser (or two people: "
+                                     "--mode human-human)")
+    p.add_argument("--port", type=_int_at_least(0, 65535), default=8000, help="TCP port (default 8000; 0: any free port)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
+    p.add_argument("--no-browser", action="store_true", help="do not open the page in the browser")
+    p.add_argument("--mode", choices=MODES, default="robot",
+                   help="robot: a person against the planner; human-human: two people on one keyboard")
+    p.add_argument("--model", default="default", help="the planner's human model: checkpoint path, default, or authors:PATH")
+    p.add_argument("--out", default="drives", help="folder the trials are recorded in (default: drives)")
+    p.add_argument("--deadline", type=_float_in(0, REPLAN_PERIOD_S), default=PLAN_DEADLINE_S,
+                   help=f"the planner's real-time deadline per plan, s, in (0, {REPLAN_PERIOD_S:g}) (default "
+                        f"{PLAN_DEADLINE_S})")
+    p.add_argument("--threads", type=_int_at_least(1, os.cpu_count() or 1),
+                   help=f"planner CPU threads, 1..{os.cpu_count() or 1} (default: all cores but one)")
+    p.add_argument("--countdown", type=_int_at_least(0, 10), default=COUNTDOWN_S,
+                   help=f"seconds of countdown before a trial, 0..10 (default {COUNTDOWN_S})")
+    p.set_defaults(func=cmd_drive, json=False)
 
     p = sub.add_parser("demo", help="the main job, end to end, on the shipped defaults")
     p.add_argument("--out", default="out", help="output folder (default: out)")

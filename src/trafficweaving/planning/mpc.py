@@ -6,13 +6,17 @@ The robot holds its lane at constant speed for the first 8 steps, then plans eve
 previous plan (the hold action for the first plan); the chosen sequence's window 1 is executed
 next and becomes the next plan's fixed window. The robot acts through accelerations, which the
 world integrates (trapezoid rule), so every plan starts from the robot's true state.
+:class:`NonBlockingMPCPolicy` is the same policy for real time: its plans run in a background
+thread and a late plan never holds up the simulation.
 """
 
 from __future__ import annotations
 
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
+import torch
 
 from .. import validate
 from ..errors import InputError
@@ -92,3 +96,118 @@ class MPCPolicy:
             self.next_fixed = int(plan.actions[1])
             self.queue = list(plan.robot[:STEPS_PER_WINDOW])
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
+
+
+class NonBlockingMPCPolicy(MPCPolicy):
+    """:class:`MPCPolicy` for real-time driving: plans run in a background thread, so :meth:`act`
+    never waits for the planner (the simulation keeps its pace whatever a plan costs).
+
+    At the start ``t`` of every window the robot starts executing that window's action at once
+    (rolled out from its true state, as the blocking policy does) and hands the plan with that
+    window fixed as window 0 to the planner thread; the plan's window 1 is due when the next
+    window starts, at ``t + 3`` (0.3 s later in real time). If the plan is done by then, its
+    window 1 is executed; if it is late, the robot keeps executing its current plan (the previous
+    plan's next window; once that plan's windows run out, 0 m/s² in its last window's lane), the
+    late plan is discarded when it arrives and the next plan starts at the next window after it.
+    :attr:`late_steps` lists the window starts whose plan was late.
+
+    The one difference from :class:`MPCPolicy` in what the robot executes when every plan is in
+    time: the acceleration stored at a window's last step is the window's own (the next window is
+    not chosen yet when it is needed), where the blocking policy stores the next window's already;
+    with the world's trapezoid rule the next window's acceleration takes effect half a step later.
+
+    :attr:`plans`, :attr:`plan_steps` hold the plans executed (by the step each was made at),
+    :attr:`latencies` the seconds of every finished plan (executed or late). ``threads``: the
+    planner thread's torch threads (None: as many as the thread making the policy has;
+    ``torch.set_num_threads`` is per thread). Call :meth:`close` to stop the planner thread (it
+    waits for a running plan).
+    """
+
+    def __init__(self, planner: Planner, cost: Cost | None = None, budget: Budget | None = None,
+                 deadline: float | None = None, hold_steps: int = HOLD_STEPS, threads: int | None = None):
+        super().__init__(planner, cost, budget, deadline, hold_steps)
+        threads = torch.get_num_threads() if threads is None else validate.thread_count("threads", threads)
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="planner",
+                                            initializer=torch.set_num_threads, initargs=(threads,))
+        self._pending: tuple[int, Future] | None = None  # (step it was made at, the plan's future)
+        self.upcoming: list[int] = []  # the current plan's actions for the windows after the executing one
+        self.window = 0  # the action index of the window being executed
+        self.late_steps: list[int] = []
+
+    def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
+        """As :meth:`MPCPolicy.reset`; a plan still running from a previous episode is waited for
+        first (it draws from the generator being reseeded) and discarded."""
+        self._drain()
+        super().reset(rng, start, me)
+        self.upcoming, self.window, self.late_steps = [], self.hold, []
+
+    def act(self, history: np.ndarray) -> np.ndarray:
+        """As :meth:`MPCPolicy.act` (``history [1, 2, t+1, 6]`` -> ``[1, 2]``), without waiting for
+        the planner: a plan is collected only if it is already done."""
+        if self.me is None:
+            raise RuntimeError("NonBlockingMPCPolicy.act needs an episode: call reset(rng, start, me) first")
+        history = validate.finite_array("history", history, (1, 2, None, len(STATE_NAMES)),
+                                        f"[1, 2, t+1, {len(STATE_NAMES)}]")
+        if not self.queue:  # a window starts at step t
+            t = history.shape[2] - 1
+            plan = self._collect(t)
+            if plan is not None:
+                self.upcoming = [int(a) for a in plan.actions[1:]]
+            self.window = self.upcoming.pop(0) if self.upcoming else Action.of(0.0, Action(self.window).lane).index
+            robot_now = history[0, self.me, -1]
+            self.queue = list(rollout(robot_now, np.array([[self.window]]))[0])
+            if self._pending is None:
+                robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: a copy
+                self._pending = (t, self._executor.submit(self._plan, robot_first, self.window))
+        return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
+
+    def warm_up(self, history: np.ndarray, plans: int = 3) -> None:
+        """Make ``plans`` plans from ``history [t+1, 2, 6]`` (robot, human) in the planner thread
+        and wait for them, so that a first real plan pays no lazy initialisation and the deadline
+        mode has measured the planner thread's speed. Nothing is kept."""
+        cost = self.fixed_cost or PaperCost(goal_y=LANE_CENTRE_Y[LANES[0]])
+        for _ in range(validate.integer("plans", plans, 0)):
+            self._executor.submit(self.planner.plan, history, 0, cost, budget=self.budget,
+                                  deadline=self.deadline).result()
+
+    @property
+    def planning(self) -> bool:
+        """Whether a plan is running in the planner thread."""
+        return self._pending is not None and not self._pending[1].done()
+
+    def _plan(self, robot_first: np.ndarray, first_action: int) -> tuple[Plan, float]:
+        """One plan (runs in the planner thread) and the seconds it took."""
+        clock = time.perf_counter()
+        plan = self.planner.plan(robot_first, first_action, self.cost, budget=self.budget, deadline=self.deadline)
+        return plan, time.perf_counter() - clock
+
+    def _collect(self, t: int) -> Plan | None:
+        """The plan made for the window starting at ``t`` (at ``t - 3``) if it is done; a finished
+        plan made earlier is late and discarded, a running one stays pending. A plan that raised
+        re-raises here."""
+        if self._pending is None:
+            return None
+        made, future = self._pending
+        if not future.done():
+            self.late_steps.append(t)
+            return None
+        self._pending = None
+        plan, seconds = future.result()
+        self.latencies.append(seconds)
+        if made + STEPS_PER_WINDOW != t:
+            return None  # its window 1 has already been replaced: late
+        self.plans.append(plan)
+        self.plan_steps.append(made)
+        return plan
+
+    def _drain(self) -> None:
+        """Wait for a pending plan and drop it."""
+        if self._pending is not None:
+            _, future = self._pending
+            self._pending = None
+            future.exception()  # waits; a failed plan of a finished episode does not concern the next
+
+    def close(self) -> None:
+        """Stop the planner thread (after a running plan); the policy cannot plan afterwards."""
+        self._drain()
+        self._executor.shutdown(wait=True)

@@ -200,7 +200,14 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
         raise InputError(f"robot {spec!r} is unknown (expected one of: {', '.join(ROBOT_SPECS)})")
     if spec == "rules":
         return RuleBasedRobot()
+    return MPCPolicy(robot_planner(spec, model, budget, device), deadline=deadline)
+
+
+def robot_planner(spec: str, model: str = "default", budget: Budget | None = None,
+                  device: torch.device | str = "cpu") -> Planner:
+    """The :class:`Planner` of the planning robot ``spec`` (``planner`` or ``planner-cv``, as
+    :func:`robot_agent`), for policies that drive it their own way (the browser's non-blocking one)."""
     device = choose_device(str(device))
     human_model = (ConstantVelocityHuman(device) if spec == "planner-cv"
                    else HumanPredictor(load_model(model, device), precision="auto"))
-    return MPCPolicy(Planner(human_model, budget), deadline=deadline)
+    return Planner(human_model, budget)

@@ -1,0 +1,193 @@
+"""Benchmark: does the browser drive hold 10 Hz while the robot replans every 0.3 s?
+
+Starts the real drive server (uvicorn, the app, the shipped model's planner in its background
+thread, torch threads as `trafficweaving drive` sets them) on a free loopback port and drives
+trial after trial against it until ``--seconds`` of simulated driving (60 by default) are done:
+each trial from a random study start and robot car, the human car driven by a scripted person
+who picks a throttle, then changes lanes at a random moment. The driver is either a WebSocket
+client answering every state (``--driver websocket``, default) or headless Chromium showing the
+real page, its keys pressed by Playwright (``--driver browser``; the page renders at its own
+frame rate on the same cores, as a person's browser would).
+
+From the recorded trials (their ``drive`` metadata) it prints the wall-clock period between
+simulation steps (mean, p99, max; the target is 0.100 s), the planner's latencies (median, p99,
+max), how many plans were late (a window started without its plan) and how many took longer than
+the 0.3 s replanning period. One JSON object with ``--json``.
+
+    python benchmarks/bench_drive.py [--seconds 60] [--driver websocket|browser] [--threads N] [--seed 0] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from trafficweaving.data.trials import load_trials
+from trafficweaving.scenario import DT, LANE_CENTRE_Y, LANE_DIVIDER_Y, REPLAN_PERIOD_S
+from trafficweaving.web.server import build_server, default_threads
+from trafficweaving.web.session import DriveConfig
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--no-first-run", "--disable-quic"]
+
+
+class ScriptedPerson:
+    """A driver for one trial: throttle ``throttle`` until ``throttle_steps``, then a light one;
+    steering towards the other lane's centre from step ``swap_at`` on."""
+
+    def __init__(self, rng: np.random.Generator, start_y: float):
+        self.throttle = float(rng.uniform(0.0, 1.0))
+        self.throttle_steps = int(rng.integers(5, 25))
+        self.brake = float(rng.uniform(0.0, 0.4)) if rng.random() < 0.3 else 0.0
+        self.swap_at = int(rng.integers(5, 30))
+        self.target = LANE_CENTRE_Y["left"] if start_y < LANE_DIVIDER_Y else LANE_CENTRE_Y["right"]
+
+    def controls(self, step: int, state) -> dict:
+        steer = 0.0
+        if step >= self.swap_at:
+            steer = max(-1.0, min(1.0, 0.5 * (state[1] - self.target) + 0.3 * state[3]))
+        early = step < self.throttle_steps
+        return {"throttle": self.throttle if early else 0.15, "brake": self.brake if early else 0.0, "steer": steer}
+
+
+def drive_websocket(url: str, seconds: float, rng: np.random.Generator) -> None:
+    from websockets.sync.client import connect
+
+    driven = 0.0
+    with connect(url.replace("http://", "ws://") + "ws", max_size=None) as ws:
+        json.loads(ws.recv(timeout=30))  # welcome
+        while driven < seconds:
+            ws.send(json.dumps({"type": "start"}))
+            started = json.loads(ws.recv(timeout=30))
+            car = started["roles"].index("human")
+            person, seq = ScriptedPerson(rng, started["states"][car][1]), 0
+            while True:
+                message = json.loads(ws.recv(timeout=30))
+                if message["type"] == "state":
+                    seq += 1
+                    ws.send(json.dumps({"type": "controls", "seq": seq, "car": car,
+                                        **person.controls(message["step"], message["cars"][car])}))
+                elif message["type"] == "ended":
+                    driven += message["steps"] * DT
+                    break
+
+
+def drive_browser(url: str, seconds: float, rng: np.random.Generator) -> None:
+    """The same person at the page's keyboard: keys held for the throttle (pulsed for a partial
+    one) and the steering (bang-bang around the wanted steering)."""
+    from playwright.sync_api import sync_playwright
+
+    driven = 0.0
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        page.goto(url)
+        while page.evaluate("window.drive.phase") != "idle":
+            time.sleep(0.05)
+        while driven < seconds:
+            page.keyboard.press("Enter")
+            while not page.evaluate("window.drive.phase === 'driving' || window.drive.phase === 'ended'"):
+                time.sleep(0.01)
+            started = page.evaluate("window.drive.started")
+            car = started["roles"].index("human")
+            person, held, tick = ScriptedPerson(rng, started["states"][car][1]), set(), 0
+            while page.evaluate("window.drive.phase") == "driving":
+                state = page.evaluate("window.drive.state")
+                if state is not None:
+                    c = person.controls(state["step"], state["cars"][car])
+                    tick += 1
+                    want = {key for key, on in (("ArrowUp", tick % 10 < 10 * c["throttle"]),
+                                                ("ArrowDown", c["brake"] > 0),
+                                                ("ArrowLeft", c["steer"] < -0.3), ("ArrowRight", c["steer"] > 0.3)) if on}
+                    for key in held - want:
+                        page.keyboard.up(key)
+                    for key in want - held:
+                        page.keyboard.down(key)
+                    held = want
+                time.sleep(0.03)
+            for key in held:
+                page.keyboard.up(key)
+            while page.evaluate("window.drive.ended") is None:
+                time.sleep(0.01)
+            driven += page.evaluate("window.drive.ended.steps") * DT
+        browser.close()
+
+
+def summarise(files: list[Path]) -> dict:
+    periods, latencies, late, windows, steps = [], [], 0, 0, 0
+    for path in files:
+        record = load_trials(path).metadata["drive"]
+        periods += record["step_periods_s"]
+        steps += record["step_period"]["steps"]
+        planner = record["planner"]
+        latencies += planner["latencies_s"]
+        late += len(planner["late_windows"])
+        windows += len(planner["plans"]) + len(planner["late_windows"])
+    periods, latencies = np.array(periods), np.array(latencies)
+    return {
+        "trials": len(files),
+        "steps": steps,
+        "driven_s": round(steps * DT, 1),
+        "step_period_s": {"mean": float(periods.mean()), "p99": float(np.percentile(periods, 99)),
+                          "max": float(periods.max()), "over_110ms": int((periods > 0.11).sum())},
+        "plan_latency_s": {"plans": len(latencies), "median": float(np.median(latencies)),
+                           "p99": float(np.percentile(latencies, 99)), "max": float(latencies.max()),
+                           "over_replanning_period": int((latencies > REPLAN_PERIOD_S).sum())},
+        "windows_planned": windows,
+        "late_plans": late,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=60.0, help="simulated driving to do, s (default 60)")
+    parser.add_argument("--driver", choices=("websocket", "browser"), default="websocket")
+    parser.add_argument("--threads", type=int, default=default_threads(),
+                        help="planner torch threads (default: as trafficweaving drive, all cores but one)")
+    parser.add_argument("--seed", type=int, default=0, help="the scripted person's choices")
+    parser.add_argument("--out", help="keep the recorded trials in this folder (default: a temporary one)")
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args()
+
+    with tempfile.TemporaryDirectory() as scratch:
+        out = Path(args.out or scratch)
+        config = DriveConfig(countdown_s=0, threads=args.threads)
+        server = build_server(config, "127.0.0.1", 0, str(out))
+        thread = threading.Thread(target=server.run, daemon=True)
+        thread.start()
+        while not server.server.started:
+            time.sleep(0.02)
+        began = time.perf_counter()
+        try:
+            (drive_browser if args.driver == "browser" else drive_websocket)(server.url, args.seconds,
+                                                                             np.random.default_rng(args.seed))
+        finally:
+            server.server.should_exit = True
+            thread.join(15)
+            server.close()
+        result = {"driver": args.driver, "threads": args.threads, "cpus": os.cpu_count(),
+                  "deadline_s": config.deadline, "wall_s": round(time.perf_counter() - began, 1),
+                  **summarise(sorted(out.glob("drive_*.parquet")))}
+    if args.json:
+        print(json.dumps(result))
+        return
+    period, plan = result["step_period_s"], result["plan_latency_s"]
+    print(f"{result['trials']} trials, {result['steps']} steps ({result['driven_s']} s driven), driver "
+          f"{args.driver}, {args.threads} planner thread(s) on {result['cpus']} CPUs, deadline {config.deadline} s")
+    print(f"step period: mean {1000 * period['mean']:.1f} ms, p99 {1000 * period['p99']:.1f} ms, "
+          f"max {1000 * period['max']:.1f} ms ({period['over_110ms']} over 110 ms)")
+    print(f"plans: {plan['plans']}, latency median {1000 * plan['median']:.0f} ms, p99 {1000 * plan['p99']:.0f} ms, "
+          f"max {1000 * plan['max']:.0f} ms ({plan['over_replanning_period']} over {REPLAN_PERIOD_S:g} s)")
+    print(f"late plans: {result['late_plans']} of {result['windows_planned']} windows")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,41 @@
+"""Where browser trials are written: one Parquet file per trial, in the dataset format.
+
+Trial ``n`` of a folder is ``drive_00000n.parquet`` (numbers continue after the highest one in
+the folder, so a folder collects the drives of many sessions); the file is written atomically
+(:meth:`~trafficweaving.data.trials.TrialSet.write_parquet`), so a reader never sees half a trial.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+from ..atomic import check_output_folder
+from ..data.trials import TrialSet
+
+FILE_PATTERN = re.compile(r"drive_(\d{6,})\.parquet")
+"""Names of recorded trials: ``drive_`` and the trial number."""
+
+
+class Recorder:
+    """Writes the trials of ``folder`` (created on the first write); InputError if it is a file."""
+
+    def __init__(self, folder: str | os.PathLike):
+        self.folder = check_output_folder(folder, "--out")
+
+    def next_number(self) -> int:
+        """The number of the next trial: one more than the highest recorded in the folder (1 first)."""
+        numbers = [int(m.group(1)) for p in (self.folder.iterdir() if self.folder.is_dir() else [])
+                   if (m := FILE_PATTERN.fullmatch(p.name))]
+        return max(numbers, default=0) + 1
+
+    def path(self, number: int) -> Path:
+        """The file of trial ``number``."""
+        return self.folder / f"drive_{number:06d}.parquet"
+
+    def write(self, trials: TrialSet, number: int) -> Path:
+        """Write trial ``number``'s record atomically; returns its path."""
+        path = self.path(number)
+        trials.write_parquet(path)
+        return path

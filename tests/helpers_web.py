@@ -1,0 +1,70 @@
+"""Helpers shared by the browser-drive test modules (test_web_protocol, test_web_browser): a real
+drive server (uvicorn, the app, the robot's planner) on a free loopback port in a thread, a
+WebSocket client, and a scripted driver."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from contextlib import contextmanager
+
+from websockets.sync.client import connect
+
+from trafficweaving.scenario import LANE_CENTRE_Y, LANE_DIVIDER_Y
+from trafficweaving.web.server import build_server
+from trafficweaving.web.session import DriveConfig
+
+
+@contextmanager
+def drive_server(out, mode: str = "robot", countdown: int = 0):
+    """A running drive server recording into ``out``; yields its URL (``http://127.0.0.1:PORT/``)."""
+    server = build_server(DriveConfig(mode=mode, countdown_s=countdown), "127.0.0.1", 0, str(out))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.server.started and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert server.server.started, "the drive server did not start"
+    try:
+        yield server.url
+    finally:
+        server.server.should_exit = True
+        thread.join(15)
+        server.close()
+
+
+def ws_url(url: str) -> str:
+    return url.replace("http://", "ws://") + "ws"
+
+
+@contextmanager
+def client(url: str, patience: float = 10.0):
+    """A WebSocket connection to the server at ``url`` (the welcome message already read, in
+    ``.welcome``); while a previous connection's session is still closing on the server (it is
+    told "another page is driving"), it tries again for up to ``patience`` seconds."""
+    deadline = time.monotonic() + patience
+    while True:
+        with connect(ws_url(url), max_size=None, open_timeout=10) as ws:
+            first = receive(ws)
+            if first["type"] == "welcome":
+                ws.welcome = first
+                yield ws
+                return
+        assert time.monotonic() < deadline, first
+        time.sleep(0.1)
+
+
+def receive(ws, timeout: float = 20.0) -> dict:
+    return json.loads(ws.recv(timeout=timeout))
+
+
+def send(ws, message) -> None:
+    ws.send(message if isinstance(message, (str, bytes)) else json.dumps(message))
+
+
+def lane_change_steer(state, start_y: float) -> float:
+    """A scripted driver's steering, in [-1, 1] (negative: left), for a car in ``state [6]`` that
+    started at ``start_y``: towards the centre of the other lane, proportional to the distance."""
+    target = LANE_CENTRE_Y["left"] if start_y < LANE_DIVIDER_Y else LANE_CENTRE_Y["right"]
+    return max(-1.0, min(1.0, 0.5 * (state[1] - target) + 0.3 * state[3]))
