@@ -323,7 +323,7 @@ def test_cli_defaults_to_the_real_time_planner_in_a_simulation_folder(tmp_path, 
     monkeypatch.chdir(tmp_path)
     assert main(["simulate", "--episodes", "1", "--human", "synthetic", "--json"]) == 0
     payload = json.loads(capsys.readouterr().out)
-    assert payload["robot"] == "planner" and payload["deadline"] == REPLAN_PERIOD_S
+    assert payload["robot"] == "planner" and payload["deadline"] == 0.3
     assert (tmp_path / "simulation" / "summary.json").is_file()
     assert main(["simulate", "--episodes", "1", "--robot", "rules", "--human", "synthetic", "--full-budget",
                  "--out", "rules", "--json"]) == 0

@@ -63,8 +63,9 @@ HORIZON = 15
 """Steps of the future the human model predicts and the planner plans (1.5 s; paper §IV-A)."""
 REPLAN_STEPS = 3
 """The robot replans every 3 steps and holds each action for as long (paper §V-C)."""
-REPLAN_PERIOD_S = REPLAN_STEPS * DT
-"""The replanning period, s (0.3 s): a plan that takes longer misses its deadline."""
+REPLAN_PERIOD_S = round(REPLAN_STEPS * DT, 9)
+"""The replanning period, s (0.3 s, rounded so that it equals ``--deadline 0.3``): a plan that takes
+longer misses its deadline."""
 MIN_HISTORY = 5
 """Fewest history steps a prediction is made from (steps 0..t with ``t >= 4``), as in the paper."""
 MIN_TRIAL_STEPS = MIN_HISTORY + HORIZON
