@@ -10,7 +10,8 @@ minADE/minFDE) with figures in ``<report folder>/figures``.
 takes, or ``crossval:DIR``, the fold models of ``trafficweaving crossval --out DIR`` on the same
 data: each trial is then predicted by the model that did not train on it (out-of-fold), the honest
 way to analyse a model trained on these trials. Every number is measured in this run (all
-instances, fixed seed).
+instances, fixed seed). ``--nested FILE`` inserts a Markdown fragment (the output of
+``scripts/nested_table.py``) as the section "Nested estimates".
 """
 
 from __future__ import annotations
@@ -108,6 +109,7 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=100, help="sampled futures per instance for the coverage")
     parser.add_argument("--ade-samples", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--nested", help="Markdown of scripts/nested_table.py, shown as the section 'Nested estimates'")
     args = parser.parse_args()
     torch.set_num_threads(1)
     out = Path(args.out)
@@ -142,8 +144,16 @@ def main() -> None:
              f"Made by `{command}`; every number is from its last run. "
              f"{len(trials)} trials, {len(exemplars)} prediction instances (every human agent at every present step "
              f"4 ≤ t ≤ T−16, conditioned on the other car's recorded future). Models: "
-             + ", ".join(f"**{n}** (`{spec.split('=', 1)[1]}`)" for n, spec in zip(results, args.model)) + ".", "",
-             *tables(results, variants), "",
+             + ", ".join(f"**{n}** (`{spec.split('=', 1)[1]}`)" for n, spec in zip(results, args.model)) + ".", ""]
+    if args.nested:
+        lines += ["## Nested estimates", "",
+                  "What a model trained by each recipe scores on trials it never saw, when every choice of the recipe "
+                  "(candidate, steps, calibration) is made without the fold it is scored on (model/crossval.py, "
+                  "model/calibrate.py; [model.md](model.md#the-shipped-models)). Made by "
+                  "`python scripts/nested_table.py` from the JSON of the commands in [model.md](model.md#reproduce).", "",
+                  Path(args.nested).read_text().strip(), "",
+                  "The sections below are out-of-fold analyses of each recipe at the choices made on all five folds.", ""]
+    lines += [*tables(results, variants), "",
              "## Figures", "",
              f"Calibration of the sampled positions 1.5 s ahead at levels {', '.join(level_key(v) for v in CURVE_LEVELS)} %; "
              "a calibrated model lies on the diagonal.", "",

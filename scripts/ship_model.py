@@ -1,6 +1,7 @@
-"""Put a trained checkpoint into the package as the model ``--model default`` loads.
+"""Put a trained checkpoint into the package as the model ``--model NAME`` loads (``--name``:
+``default`` or ``simulated-real``).
 
-    python scripts/ship_model.py runs/shipped.pt --data-command "trafficweaving import hitl ..." \\
+    python scripts/ship_model.py runs/shipped.pt [--name default] --data-command "trafficweaving import hitl ..." \\
         --summary "pre-trained on simulated drivers, fine-tuned on 30 real trials" \\
         --recipe "$(cat recipe.txt)" --crossval runs/crossval.json
 
@@ -16,12 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 
-from trafficweaving.model.checkpoint import default_model_path, export_checkpoint
+from trafficweaving.model.checkpoint import SHIPPED_MODELS, export_checkpoint, shipped_model_path
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint", help="a checkpoint written by `trafficweaving train`")
+    parser.add_argument("--name", choices=tuple(SHIPPED_MODELS), default="default", help="the --model name it ships as")
     parser.add_argument("--data-command", required=True, help="the command that made the (last) training data")
     parser.add_argument("--recipe", help="every command of the recipe, from data to this checkpoint")
     parser.add_argument("--summary", help="one line: what the model was trained on")
@@ -34,8 +36,8 @@ def main() -> None:
     if args.crossval:
         with open(args.crossval) as f:
             provenance["crossval"] = json.load(f)
-    export_checkpoint(args.checkpoint, default_model_path(), **provenance)
-    print(f"wrote {default_model_path()}")
+    export_checkpoint(args.checkpoint, shipped_model_path(args.name), **provenance)
+    print(f"wrote {shipped_model_path(args.name)}")
 
 
 if __name__ == "__main__":

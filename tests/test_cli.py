@@ -126,7 +126,7 @@ def test_train_then_evaluate_a_checkpoint(capsys, tmp_path):
     (["predict", "--model", "MODEL", "--data", "DATA", "--at", "0", "--out", "f.png"], "expected TRIAL:T"),
     (["predict", "--model", "MODEL", "--data", "DATA", "--at", "0:2", "--out", "f.png"], "t must be within 4.."),
     (["predict", "--model", "MODEL", "--data", "DATA", "--at", "99:5", "--out", "f.png"], "trial index 99 is outside"),
-    (["train", "--data", "DATA", "--out", "x.pt", "--init", "MODEL", "--variant", "cvae-hold"], "a cvae model, but --variant cvae-hold"),
+    (["train", "--data", "DATA", "--out", "x.pt", "--init", "MODEL", "--variant", "lstm"], "a cvae model, but --variant lstm"),
     (["train", "--data", "DATA", "--out", "x.pt", "--init", "MODEL"], "its standardisation does not fit the data"),
     (["train", "--data", "DATA", "--out", "x.pt", "--init", "MODEL", "--resume", "MODEL"], "exclude each other"),
     (["train", "--data", "DATA", "--out", "x.pt", "--validation-fraction", "0", "--patience", "3"], "--patience needs a validation set"),
@@ -174,7 +174,6 @@ def test_crossval_json_reports_folds_mean_and_reference(capsys, tmp_path):
 
 
 def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoints(capsys, tmp_path):
-    from trafficweaving.model.calibrate import SCALES, TEMPERATURES
     from trafficweaving.model.checkpoint import load_checkpoint
 
     data, model, folds = tmp_path / "d.parquet", tmp_path / "m.pt", tmp_path / "folds"
@@ -183,9 +182,10 @@ def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoin
     run(capsys, "crossval", "--data", data, "--folds", 3, "--init", model, "--steps", 2, "--validate-every", 2,
         "--out", folds, "--json")
     code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--out", tmp_path / "c.pt",
-                       "--out-folds", tmp_path / "cfolds", "--samples", 10, "--json")
+                       "--out-folds", tmp_path / "cfolds", "--samples", 10, "--temperatures", "1,2", "--scales", "1,1.5,2",
+                       "--json")
     report = json.loads(out)
-    assert code == 0 and len(report["grid"]) == len(TEMPERATURES) * len(SCALES)
+    assert code == 0 and len(report["grid"]) == 6 and {r["output_scale"] for r in report["grid"]} == {1, 1.5, 2}
     chosen = (report["latent_temperature"], report["output_scale"])
     calibrated, payload = load_checkpoint(tmp_path / "c.pt")
     assert (calibrated.latent_temperature.item(), calibrated.output_scale.item()) == pytest.approx(chosen)
@@ -196,29 +196,74 @@ def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoin
     assert code == 2 and "no fold_K.pt files" in err and err.count("\n") == 1
 
 
+def test_nested_recipe_search_chooses_candidate_and_calibration_on_inner_folds(capsys, tmp_path):
+    from trafficweaving.model.checkpoint import load_checkpoint
+
+    data, model = tmp_path / "d.parquet", tmp_path / "m.pt"
+    run(capsys, "generate", "--trials", 9, "--seed", 3, "--out", data, "--json")
+    run(capsys, "train", "--data", data, "--out", model, "--steps", 2, "--variant", "cvae", "--json")
+    folders = []
+    for parts in ("all", "hold"):  # two candidate recipes: fine-tune everything, or the added hold head alone
+        folders.append(tmp_path / parts)
+        code, out, _ = run(capsys, "crossval", "--data", data, "--folds", 3, "--init", model, "--variant", "cvae-hold",
+                           "--train-parts", parts, "--hold-lr", 0.05, "--steps", 2, "--validate-every", 2, "--nested",
+                           "--out", folders[-1], "--json")
+        report = json.loads(out)
+        assert code == 0 and report["nested"]["method"] == "inner cross-validation"
+        assert set(report["folds_by_direction"]) == {"x", "y"}
+    code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folders[0], "--model", model, "--folds", folders[1],
+                       "--model", model, "--nested", "--samples", 4, "--temperatures", "1", "--scales", "1,2",
+                       "--out", tmp_path / "c.pt", "--json")
+    report = json.loads(out)
+    assert code == 0 and len(report["candidates_nll_exact"]) == 2  # the recipe by likelihood, then its calibration
+    best = min(range(2), key=lambda c: report["candidates_nll_exact"][c])
+    assert {(r["candidate"], r["output_scale"]) for r in report["grid"]} == {(best, 1), (best, 2)}
+    nested = report["nested"]
+    assert len(nested["folds"]) == 3 and all(f["candidate"] in (0, 1) for f in nested["folds"])
+    assert nested["fold_mean_nll_exact"] == pytest.approx(sum(f["nll_exact"] for f in nested["folds"]) / 3)
+    calibrated, payload = load_checkpoint(tmp_path / "c.pt")
+    assert calibrated.output_scale.item() == pytest.approx(report["output_scale"]) and payload["calibration"]["nested"] == nested
+    code, _, err = run(capsys, "calibrate", "--data", data, "--folds", folders[0], "--model", model, "--model", model,
+                       "--out", tmp_path / "x.pt")
+    assert code == 2 and "2 --model for 1 --folds" in err
+
+
 def test_default_model_is_shipped_trained_and_evaluates(capsys, tmp_path):
     from trafficweaving.model.checkpoint import default_model_path, read_checkpoint
 
     payload = read_checkpoint(default_model_path())
     assert "optimizer" not in payload and payload["data_command"].startswith("trafficweaving import hitl")
     assert payload["config"]["hold"] and payload["config"]["components"] == 16
-    # pre-trained on simulated drivers, then fine-tuned: both data fingerprints and the recipe
-    assert len(payload["init"]["data_fingerprint"]) == len(payload["data_fingerprint"]) == 64
-    assert payload["init"]["data_fingerprint"] != payload["data_fingerprint"]
-    assert "trafficweaving crossval" in payload["recipe"] and "trafficweaving generate" in payload["recipe"]
-    cv = payload["crossval"]  # the cross-validation that chose the schedule: better than the authors' on every fold
-    assert len(cv["folds"]) == 5 and all(a < b for a, b in zip(cv["folds"], cv["reference"]["folds"]))
+    # the authors' real-data model given hold modes, then fine-tuned on the real trials by the recipe
+    assert payload["init"]["path"].startswith("authors:") and payload["init"]["upgraded_to"] == "cvae-hold"
+    assert "trafficweaving crossval" in payload["recipe"] and "--nested" in payload["recipe"]
+    cv = payload["crossval"]  # the cross-validation that chose the steps: better than the authors' on every fold
+    assert len(cv["folds"]) == 5 and all(a < b for a, b in zip(cv["nested"]["folds"], cv["reference"]["folds"]))
     calibration = payload["calibration"]  # chosen out-of-fold: 90 % position intervals at 1.5 s cover 85-95 %
     assert all(0.85 <= c <= 0.95 for c in calibration["coverage_90"].values())
     assert payload["state_dict"]["output_scale"].item() == calibration["output_scale"]
+    nested = calibration["nested"]  # every choice made on inner folds: the estimate for new trials
+    assert all(f["nll_exact"] < ref for f, ref in zip(nested["folds"], cv["reference"]["folds"]))
+    assert all(0.85 <= c <= 0.95 for c in nested["coverage_90"].values())
     data = tmp_path / "fresh.parquet"  # trials the shipped model never saw (another seed)
     run(capsys, "generate", "--trials", 20, "--seed", 12345, "--out", data, "--json")
     code, out, _ = run(capsys, "evaluate", "--model", "default", "--data", data, "--json", "--max-sampled-instances", 0)
     report = json.loads(out)
     assert code == 0 and report["variant"] == "cvae-hold" and report["instances"] > 500
     # an untrained model scores about +30 nats here; the trained one predicts simulated humans
-    assert report["nll_exact"] < 0
-    assert report["nll_exact"] <= report["nll_is"] + 0.5 and report["nll_exact"] <= report["nll_naive"] + 0.5
+    assert report["nll_exact"] < 0 and report["nll_exact"] <= report["nll_naive"] + 0.5
+
+
+def test_simulated_real_model_is_shipped_without_the_authors_weights(capsys):
+    from trafficweaving.model.checkpoint import read_checkpoint, shipped_model_path
+
+    payload = read_checkpoint(shipped_model_path("simulated-real"))
+    assert not payload["init"]["path"].startswith("authors:") and "--init authors:" not in payload["recipe"]
+    # pre-trained on simulated drivers, then fine-tuned: both data fingerprints and the recipe
+    assert len(payload["init"]["data_fingerprint"]) == len(payload["data_fingerprint"]) == 64
+    assert payload["init"]["data_fingerprint"] != payload["data_fingerprint"]
+    assert "trafficweaving generate" in payload["recipe"]
+    assert all(0.85 <= c <= 0.95 for c in payload["calibration"]["coverage_90"].values())
 
 
 def test_bench_plan_reports_futures_and_seconds(capsys):

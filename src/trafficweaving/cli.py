@@ -69,6 +69,18 @@ def _float_in(low: float, high: float, include_low: bool = False, include_high: 
     return parse
 
 
+def _floats_in(low: float, high: float):
+    """An argparse type: a comma-separated list of finite floats in ``(low, high)``."""
+    one = _float_in(low, high)
+
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            return tuple(one(part) for part in text.split(","))
+        except argparse.ArgumentTypeError as exc:
+            raise argparse.ArgumentTypeError(f"{exc} in the list {text!r}") from None
+    return parse
+
+
 POSITIVE = _int_at_least(1)
 NON_NEGATIVE = _int_at_least(0)
 SEED = _int_at_least(0, SEED_MAX)
@@ -190,18 +202,21 @@ def _train_config(args):
     if args.init:
         tc = replace(tc, **FINE_TUNING)
     overrides = {"lr_initial": args.lr, "validate_every": args.validate_every,
-                 "patience": getattr(args, "patience", None)}
+                 "patience": getattr(args, "patience", None), "objective": args.objective, "hold_lr": args.hold_lr,
+                 "trainable": args.train_parts}
     tc = replace(tc, **{k: v for k, v in overrides.items() if v is not None})
     return replace(tc, lr_final=min(tc.lr_final, tc.lr_initial), checkpoint_every=min(tc.checkpoint_every, tc.validate_every))
 
 
 def _model_spec(spec: str, what: str) -> str:
-    """Check a ``--model``-style value early (before long work): ``default``, ``authors:PATH`` or a
-    checkpoint file; the full validation happens when it is loaded."""
+    """Check a ``--model``-style value early (before long work): a shipped model's name,
+    ``authors:PATH`` or a checkpoint file; the full validation happens when it is loaded."""
+    from .model.checkpoint import SHIPPED_MODELS
+
     path = spec.removeprefix("authors:") if spec.startswith("authors:") else spec
-    if spec != "default" and not Path(path).is_file():
-        raise InputError(f"{what} {spec}: no such file (expected a checkpoint path, default, or authors:PATH "
-                         f"to the authors' weights.npz)")
+    if spec not in SHIPPED_MODELS and not Path(path).is_file():
+        raise InputError(f"{what} {spec}: no such file (expected a checkpoint path, {', '.join(SHIPPED_MODELS)}, "
+                         f"or authors:PATH to the authors' weights.npz)")
     return spec
 
 
@@ -240,9 +255,11 @@ def cmd_crossval(args) -> None:
     tc = _train_config(args)
     device = choose_device(args.device)
     trials = load_trials(args.data)
+    if args.init is not None:
+        _model_spec(args.init, "--init")
     result = crossval(trials, args.folds, tc, variant=args.variant, init=args.init, reference=args.reference,
                       seed=args.seed, device=device, progress=not args.json, log=_log(args),
-                      out=out, beat_reference=args.beat_reference)
+                      out=out, beat_reference=args.beat_reference, nested=args.nested, workers=args.workers)
     summary = result.summary()
     payload = {**summary, "data": args.data, "init": args.init, "variant": args.variant, "out": args.out}
     ref = summary["reference"]
@@ -250,7 +267,8 @@ def cmd_crossval(args) -> None:
              f"({'fine-tuning ' + args.init if args.init else 'training from scratch'})",
              f"held-out exact NLL at the chosen {summary['steps']} steps: "
              + " ".join(f"{v:.2f}" for v in summary["folds"]) + f"  mean {summary['nll_exact']:.3f}",
-             f"nested (each fold at the steps its other folds choose): mean {summary['nested']['nll_exact']:.3f}"]
+             f"nested (each fold at the steps chosen by {summary['nested']['method']}): "
+             + " ".join(f"{v:.2f}" for v in summary["nested"]["folds"]) + f"  mean {summary['nested']['nll_exact']:.3f}"]
     if ref:
         lines.append(f"reference {ref['model']}: " + " ".join(f"{v:.2f}" for v in ref["folds"]) + f"  mean {ref['nll_exact']:.3f}")
     _emit(args, payload, "\n".join(lines))
@@ -259,29 +277,46 @@ def cmd_crossval(args) -> None:
 def cmd_calibrate(args) -> None:
     from .data.trials import load_trials
     from .model.calibrate import calibrate
-    from .model.checkpoint import default_model_path, model_from_checkpoint, read_checkpoint, save_checkpoint
+    from .model.checkpoint import model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
     from .model.crossval import out_of_fold_models
 
+    if len(args.model) != len(args.folds):
+        raise InputError(f"{len(args.model)} --model for {len(args.folds)} --folds (expected one model trained on every "
+                         f"fold per folder of fold models, in the same order)")
     out = check_output_file(args.out, "--out")
     out_folds = check_output_folder(args.out_folds, "--out-folds") if args.out_folds is not None else None
-    path = default_model_path() if args.model == "default" else Path(args.model)
-    payload = read_checkpoint(path)  # a bad --model fails before the long grid
+    paths = [model_path(m) for m in args.model]
+    payloads = [read_checkpoint(path) for path in paths]  # a bad --model fails before the long grid
+    for folder in args.folds:
+        out_of_fold_models(folder)
+        if args.nested:
+            out_of_fold_models(Path(folder) / "nested")
     trials = load_trials(args.data)
-    result = calibrate(trials, args.folds, samples=args.samples, seed=args.seed, log=_log(args))
+    result = calibrate(trials, args.folds, args.temperatures, args.scales, samples=args.samples, seed=args.seed,
+                       log=_log(args), nested=args.nested, workers=args.workers)
     summary = result.summary()
-    temperature, scale = summary["latent_temperature"], summary["output_scale"]
+    candidate, temperature, scale = summary["candidate"], summary["latent_temperature"], summary["output_scale"]
+    path, payload = paths[candidate], payloads[candidate]
     model = model_from_checkpoint(payload, path).set_calibration(temperature, scale)
     kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict")}
     save_checkpoint(out, model, **{**kept, "calibration": summary})
     if out_folds is not None:
-        for k, (fold_model, held) in enumerate(out_of_fold_models(args.folds)):
+        for k, (fold_model, held) in enumerate(out_of_fold_models(args.folds[candidate])):
             save_checkpoint(out_folds / f"fold_{k + 1}.pt", fold_model.set_calibration(temperature, scale),
                             held_out_trials=held, calibration=summary)
     cov = summary["coverage_90"]
-    _emit(args, {**summary, "model": str(args.model), "out": str(out)},
-          f"calibrated {args.model} -> {out}: latent temperature {temperature:g}, output scale {scale:g} "
-          f"(out-of-fold NLL {summary['nll_exact']:.2f}, 90 % coverage at 1.5 s x {100 * cov['x']:.0f} %, "
-          f"y {100 * cov['y']:.0f} %)")
+    lines = [f"calibrated {args.model[candidate]} -> {out}: latent temperature {temperature:g}, output scale {scale:g} "
+             f"(out-of-fold NLL {summary['nll_exact']:.2f}, 90 % coverage at 1.5 s x {100 * cov['x']:.0f} %, "
+             f"y {100 * cov['y']:.0f} %)"]
+    if result.nested is not None:
+        n = result.nested
+        lines.append(f"nested (every choice made on each fold's inner folds): NLL {n['fold_mean_nll_exact']:.2f} per fold "
+                     f"({n['nll_exact']:.2f} per instance; x {n['nll_exact_by_direction']['x']:.2f}, y "
+                     f"{n['nll_exact_by_direction']['y']:.2f}), 90 % coverage at 1.5 s x {100 * n['coverage_90']['x']:.0f} %, "
+                     f"y {100 * n['coverage_90']['y']:.0f} %")
+    _emit(args, {**summary, "model": str(args.model[candidate]), "folds": str(args.folds[candidate]),
+                 "candidates": [str(f) for f in args.folds], "out": str(out)},
+          "\n".join(lines))
 
 
 def cmd_evaluate(args) -> None:
@@ -451,21 +486,30 @@ def cmd_demo(args) -> None:
 def _add_schedule_options(p, steps: int) -> None:
     """Options shared by ``train`` and ``crossval``."""
     from .model.cvae import VARIANTS
+    from .model.train import OBJECTIVES, TRAINABLE
 
-    p.add_argument("--variant", choices=tuple(VARIANTS), help="model variant (default cvae; with --init, the model's own)")
-    p.add_argument("--init", metavar="MODEL", help="fine-tune this checkpoint (its own schedule: --lr, --steps, --patience)")
+    p.add_argument("--variant", choices=tuple(VARIANTS), help="model variant (default cvae; with --init, the model's own, "
+                                                              "or cvae-hold to give a cvae model hold modes, switched off)")
+    p.add_argument("--init", metavar="MODEL", help="fine-tune this checkpoint or authors:PATH (its own schedule: --lr, "
+                                                   "--steps, --patience)")
     p.add_argument("--steps", type=POSITIVE, default=steps, help=f"training steps (default {steps})")
     p.add_argument("--lr", type=_float_in(0, 1), help="initial learning rate in (0, 1) (default 1e-3, or 1e-4 with --init)")
     p.add_argument("--validate-every", type=POSITIVE, help="steps between validations (default 1000, or 50 with --init)")
+    p.add_argument("--objective", choices=OBJECTIVES, help="training objective: elbo (the paper's, needs q), exact "
+                                                           "(-log Σ_z p(z|x) p(y|x,z)); default elbo, or exact for a model without q")
+    p.add_argument("--train-parts", choices=tuple(TRAINABLE), help="what learns: all (default), decoder (decoder, "
+                                                                   "GMM and hold heads), hold (the hold head alone)")
+    p.add_argument("--hold-lr", type=_float_in(0, 1), help="constant learning rate of the hold modes' logits "
+                                                           "(default: the main learning rate)")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda, cuda:N")
     p.add_argument("--json", action="store_true")
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .model.calibrate import SCALES, TEMPERATURES
     from .model.predictor import PRECISIONS
     from .planning.candidates import N_CANDIDATES
-    from .scenario import REPLAN_PERIOD_S
     from .web.options import COUNTDOWN_S, MODES, PLAN_DEADLINE_S
 
     parser = _Parser(prog="trafficweaving", description=__doc__.splitlines()[0])
@@ -517,13 +561,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="folder for each fold's model at the chosen steps (fold_K.pt, with its held-out trials)")
     p.add_argument("--beat-reference", action="store_true",
                    help="choose the steps only among those where every fold beats the --reference model")
+    p.add_argument("--nested", action="store_true",
+                   help="also train without each pair of folds, so that each fold's steps are chosen by an inner "
+                        "cross-validation without it (the nested estimate); --out then also gets nested/ for calibrate --nested")
+    p.add_argument("--workers", type=POSITIVE, default=1, help="fits run in this many processes (default 1)")
     _add_schedule_options(p, steps=1000)
     p.set_defaults(func=cmd_crossval)
 
     p = sub.add_parser("calibrate", help="choose a model's latent temperature and output scale on out-of-fold predictions")
     p.add_argument("--data", required=True, help="the Parquet dataset the cross-validation ran on")
-    p.add_argument("--folds", required=True, help="folder of fold models written by `crossval --out`")
-    p.add_argument("--model", required=True, help="the checkpoint to calibrate (or default), trained on every fold")
+    p.add_argument("--folds", required=True, action="append", help="folder of fold models written by `crossval --out`; "
+                   "repeated: candidate recipes, the best is chosen with its calibration")
+    p.add_argument("--model", required=True, action="append", help="the checkpoint to calibrate (or default), trained on "
+                   "every fold; one per --folds, in the same order")
+    p.add_argument("--nested", action="store_true", help="also report the nested estimate: each fold's candidate and "
+                   "calibration chosen on its inner folds (needs folders written by `crossval --nested --out`)")
+    p.add_argument("--workers", type=POSITIVE, default=1, help="the grid is scored in this many processes (default 1)")
+    p.add_argument("--temperatures", type=_floats_in(0, 100), default=TEMPERATURES,
+                   help=f"latent temperatures of the grid, comma-separated (default {','.join(f'{v:g}' for v in TEMPERATURES)})")
+    p.add_argument("--scales", type=_floats_in(0, 100), default=SCALES,
+                   help=f"output scales of the grid, comma-separated (default {','.join(f'{v:g}' for v in SCALES)})")
     p.add_argument("--out", required=True, help="the calibrated checkpoint")
     p.add_argument("--out-folds", help="also write the calibrated fold models here (for out-of-fold reports)")
     p.add_argument("--samples", type=_int_at_least(2), default=100, help="sampled futures per instance for the coverage")

@@ -11,38 +11,54 @@ predicted by the fold model that did not train on it): among the settings of a g
 position intervals 1.5 s ahead cover between 85 % and 95 % of the real positions in both
 directions, the one with the best out-of-fold exact NLL (if none does, the one whose worse
 direction is closest to 90 %). The chosen setting is then applied to the model trained on every
-fold. The choice is made on the same out-of-fold predictions it is scored on: two scalars over
-hundreds of instances, a small optimism.
+fold. Several cross-validation folders are candidate recipes: the recipe is chosen first, by
+likelihood (the best uncalibrated out-of-fold exact NLL), then its calibration by the rule above
+(coverage is a property the calibration fixes, not a reason to prefer a worse recipe).
+
+That choice is made on the same out-of-fold predictions it is scored on, a small optimism. The
+nested estimate (:func:`calibrate_nested`, ``calibrate --nested``) removes it: each outer fold's
+recipe, steps and calibration are chosen on its inner folds alone, as a new trial would meet them.
 """
 
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import torch
 
 from ..data.trials import TrialSet
 from .crossval import out_of_fold_models
 from .exemplars import build_exemplars
+from .evaluate import evaluate
 from .metrics import InstanceMetrics, evaluate_instances
 
 TEMPERATURES = (1.0, 2.0, 5.0)
-SCALES = (1.0, 1.4, 1.7, 2.0, 2.5)
+SCALES = (1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0)
 COVERAGE_BAND = (0.85, 0.95)
 """Accepted coverage of the nominal 90 % position interval 1.5 s ahead, per direction."""
 
 
 @dataclass
 class Calibration:
-    """``grid``: one dict per setting (``latent_temperature``, ``output_scale``, ``nll_exact``,
-    ``coverage_90`` ``{"x", "y"}`` at 1.5 s, ``min_ade_m``), out-of-fold; ``chosen``: its index."""
+    """``grid``: one dict per setting of the chosen candidate (``candidate`` index into the fold
+    folders, ``latent_temperature``, ``output_scale``, ``nll_exact``, ``nll_exact_by_direction``,
+    ``coverage_90`` ``{"x", "y"}`` at 1.5 s, ``min_ade_m``), out-of-fold; ``chosen``: its index;
+    ``candidates_nll_exact``: every candidate's uncalibrated out-of-fold NLL; ``nested``: the
+    nested estimate (:func:`calibrate_nested`) or None."""
 
     grid: list[dict]
     chosen: int
+    candidates_nll_exact: list[float]
+    nested: dict | None = None
 
     def summary(self) -> dict:
-        return {**self.grid[self.chosen], "grid": self.grid, "coverage_band": list(COVERAGE_BAND)}
+        return {**self.grid[self.chosen], "grid": self.grid, "candidates_nll_exact": self.candidates_nll_exact,
+                "coverage_band": list(COVERAGE_BAND), "nested": self.nested}
 
 
 def _choose(grid: list[dict]) -> int:
@@ -53,22 +69,112 @@ def _choose(grid: list[dict]) -> int:
     return min(range(len(grid)), key=lambda k: max(abs(c - 0.9) for c in grid[k]["coverage_90"].values()))
 
 
-def calibrate(trials: TrialSet, folds: str, temperatures=TEMPERATURES, scales=SCALES, samples: int = 100,
-              seed: int = 0, log: Callable[[str], None] = print) -> Calibration:
-    """Score every (temperature, scale) of the grid on the out-of-fold models in folder ``folds``
-    (written by ``crossval --out`` on ``trials``) and choose one (module docstring)."""
-    models = out_of_fold_models(folds)
-    subsets = [trials.subset(np.flatnonzero(np.isin(trials.trial_ids, held))) for _, held in models]
+def _scored(pairs: list, trials: TrialSet, temperature: float, scale: float, samples: int, seed: int) -> InstanceMetrics:
+    """The instances of every ``(model, held-out trial ids)`` of ``pairs``, each scored by its model
+    calibrated with ``temperature`` and ``scale``."""
+    parts = []
+    for model, held in pairs:
+        fold = trials.subset(np.flatnonzero(np.isin(trials.trial_ids, held)))
+        parts.append(evaluate_instances(model.set_calibration(temperature, scale), fold, build_exemplars(fold),
+                                        samples=samples, ade_samples=20, seed=seed))
+    return InstanceMetrics.concatenate(parts)
+
+
+def _row(candidate: int, temperature: float, scale: float, metrics: InstanceMetrics) -> dict:
+    s = metrics.summary()
+    return {"candidate": candidate, "latent_temperature": temperature, "output_scale": scale, "nll_exact": s["nll_exact"],
+            "nll_exact_by_direction": s["nll_exact_by_direction"],
+            "coverage_90": {d: s["coverage"][d]["1.5"]["90"] for d in ("x", "y")}, "min_ade_m": s["min_ade_m"]}
+
+
+def _score_job(job: tuple) -> dict:
+    """One grid point, ``(candidate, temperature, scale, pairs, trials, samples, seed)``, as a row."""
+    torch.set_num_threads(1)
+    c, temperature, scale, pairs, trials, samples, seed = job
+    return _row(c, temperature, scale, _scored(pairs, trials, temperature, scale, samples, seed))
+
+
+def _grid(candidate: int, pairs: list, trials: TrialSet, temperatures, scales, samples: int, seed: int, log,
+          pool: Executor | None) -> list[dict]:
+    """Every (temperature, scale) of one candidate, a list of ``(model, held-out ids)``, scored in
+    ``pool``'s processes (or here)."""
+    jobs = [(candidate, temperature, scale, pairs, trials, samples, seed) for temperature in temperatures for scale in scales]
     grid = []
-    for temperature in temperatures:
-        for scale in scales:
-            parts = [evaluate_instances(model.set_calibration(temperature, scale), fold, build_exemplars(fold),
-                                        samples=samples, ade_samples=20, seed=seed)
-                     for (model, _), fold in zip(models, subsets)]
-            s = InstanceMetrics.concatenate(parts).summary()
-            row = {"latent_temperature": temperature, "output_scale": scale, "nll_exact": s["nll_exact"],
-                   "coverage_90": {d: s["coverage"][d]["1.5"]["90"] for d in ("x", "y")}, "min_ade_m": s["min_ade_m"]}
-            grid.append(row)
-            log(f"temperature {temperature:g}, scale {scale:g}: out-of-fold NLL {row['nll_exact']:.2f}, 90 % coverage "
-                f"at 1.5 s x {100 * row['coverage_90']['x']:.0f} %, y {100 * row['coverage_90']['y']:.0f} %")
-    return Calibration(grid, _choose(grid))
+    for row in (pool.map(_score_job, jobs) if pool is not None else map(_score_job, jobs)):
+        grid.append(row)
+        log(f"candidate {candidate + 1}, temperature {row['latent_temperature']:g}, scale {row['output_scale']:g}: "
+            f"NLL {row['nll_exact']:.2f}, 90 % coverage at 1.5 s x {100 * row['coverage_90']['x']:.0f} %, "
+            f"y {100 * row['coverage_90']['y']:.0f} %")
+    return grid
+
+
+def _uncalibrated_nll(pairs: list, trials: TrialSet) -> float:
+    """Mean exact NLL over the held-out instances of ``(model, held-out ids)`` pairs, uncalibrated."""
+    nll = []
+    for model, held in pairs:
+        fold = trials.subset(np.flatnonzero(np.isin(trials.trial_ids, held)))
+        nll.append(evaluate(model.set_calibration(1.0, 1.0), build_exemplars(fold)).nll_exact)
+    return float(np.concatenate(nll).mean())
+
+
+def _search(candidates: list[list], trials: TrialSet, temperatures, scales, samples: int, seed: int, log,
+            pool: Executor | None) -> tuple[list[float], list[dict], int]:
+    """The recipe by likelihood, then its calibration by coverage: the candidate (a list of
+    ``(model, held-out ids)``) with the best uncalibrated out-of-fold exact NLL, and its grid and
+    chosen setting (:func:`_choose`). Returns every candidate's NLL, the grid, the chosen row."""
+    scores = [_uncalibrated_nll(pairs, trials) for pairs in candidates]
+    best = int(np.argmin(scores))
+    if len(candidates) > 1:
+        log("uncalibrated out-of-fold NLL of the candidates: " + ", ".join(f"{v:.2f}" for v in scores)
+            + f"; chosen: candidate {best + 1}")
+    grid = _grid(best, candidates[best], trials, temperatures, scales, samples, seed, log, pool)
+    return scores, grid, _choose(grid)
+
+
+def calibrate(trials: TrialSet, folds: str | list, temperatures=TEMPERATURES, scales=SCALES, samples: int = 100,
+              seed: int = 0, log: Callable[[str], None] = print, nested: bool = False, workers: int = 1) -> Calibration:
+    """Choose a candidate and its calibration on the out-of-fold models in ``folds`` (a folder
+    written by ``crossval --out`` on ``trials``, or a list of them: candidate recipes; module
+    docstring). With ``nested``, also :func:`calibrate_nested`. ``workers`` > 1 scores the grid in
+    that many processes."""
+    folders = [folds] if isinstance(folds, (str, Path)) else list(folds)
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) if workers > 1 else None
+    try:
+        scores, grid, chosen = _search([out_of_fold_models(f) for f in folders], trials, temperatures, scales, samples,
+                                       seed, log, pool)
+        estimate = calibrate_nested(trials, folders, temperatures, scales, samples, seed, log, pool) if nested else None
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+    return Calibration(grid, chosen, scores, estimate)
+
+
+def calibrate_nested(trials: TrialSet, folders: list, temperatures=TEMPERATURES, scales=SCALES, samples: int = 100,
+                     seed: int = 0, log: Callable[[str], None] = print, pool: Executor | None = None) -> dict:
+    """The nested estimate of choosing a candidate recipe and its calibration: for each outer fold
+    K, the choice of :func:`calibrate` made on the inner out-of-fold models of K alone
+    (``FOLDER/nested/fold_K/fold_J.pt``, written by ``crossval --nested --out``: trained without
+    folds K and J, holding out J), applied to that candidate's model of K at its inner-chosen steps
+    (``FOLDER/nested/fold_K.pt``) and scored on fold K. No choice involves fold K's scores.
+    Returns ``nll_exact``, ``nll_exact_by_direction``, ``coverage_90``, ``min_ade_m`` over every
+    fold's instances, and ``folds`` (per fold: its choice and scores)."""
+    outer = [[model for model, _ in out_of_fold_models(Path(f) / "nested")] for f in folders]
+    held = [h for _, h in out_of_fold_models(Path(folders[0]) / "nested")]
+    parts, per_fold = [], []
+    for k in range(len(held)):
+        inner = [out_of_fold_models(Path(f) / "nested" / f"fold_{k + 1}") for f in folders]
+        scores, grid, chosen = _search(inner, trials, temperatures, scales, samples, seed, lambda _: None, pool)
+        pick = grid[chosen]
+        c, temperature, scale = pick["candidate"], pick["latent_temperature"], pick["output_scale"]
+        metrics = _scored([(outer[c][k], held[k])], trials, temperature, scale, samples, seed)
+        parts.append(metrics)
+        row = _row(c, temperature, scale, metrics)
+        per_fold.append({**row, "instances": len(metrics),
+                         "inner": {"candidates_nll_exact": scores, **{k: pick[k] for k in ("nll_exact", "coverage_90")}}})
+        log(f"outer fold {k + 1}: chose {'candidate ' + str(c + 1) + ', ' if len(folders) > 1 else ''}temperature "
+            f"{temperature:g}, scale {scale:g} on its inner folds; held-out NLL {row['nll_exact']:.2f} "
+            f"(x {row['nll_exact_by_direction']['x']:.2f}, y {row['nll_exact_by_direction']['y']:.2f}), 90 % coverage "
+            f"at 1.5 s x {100 * row['coverage_90']['x']:.0f} %, y {100 * row['coverage_90']['y']:.0f} %")
+    total = _row(-1, float("nan"), float("nan"), InstanceMetrics.concatenate(parts))
+    return {k: total[k] for k in ("nll_exact", "nll_exact_by_direction", "coverage_90", "min_ade_m")} | {
+        "fold_mean_nll_exact": float(np.mean([f["nll_exact"] for f in per_fold])), "folds": per_fold}

@@ -34,7 +34,10 @@ FORMAT = "trafficweaving-cvae"
 VERSION = 2
 """2: adds ``tensor_sha256``; version 1 files (no digest) are refused."""
 HASH_FIELD = "tensor_sha256"
-DEFAULT_MODEL = "default_cvae.pt"
+SHIPPED_MODELS = {  # --model name: file in the package (docs/model.md, "The shipped models")
+    "default": "default_cvae.pt",  # the authors' real-data model with hold modes, fine-tuned on the 30 real trials
+    "simulated-real": "simulated_real_cvae.pt",  # no authors' weights: simulated drivers, then the 30 real trials
+}
 EXPECTED = "a trafficweaving model checkpoint (.pt written by `trafficweaving train`)"
 WRITTEN_BY_US = "expected a checkpoint as written by trafficweaving"
 
@@ -296,9 +299,15 @@ def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
     check_tensors(state, expected, path)
     optimizer = payload.get("optimizer")
     if isinstance(optimizer, dict) and isinstance(optimizer.get("param_groups"), list):
-        count, params = sum(len(g.get("params", ())) for g in optimizer["param_groups"]), len(list(model.parameters()))
+        from .train import TRAINABLE  # here: train imports this module
+
+        trainable = (payload.get("train_config") or {}).get("trainable", "all")
+        parts = TRAINABLE.get(trainable) if isinstance(trainable, str) else None
+        count = sum(len(g.get("params", ())) for g in optimizer["param_groups"])
+        params = sum(1 for name, _ in model.named_parameters() if parts is None or name.split(".")[0] in parts)
         if count != params:
-            raise InputError(f"{path}: optimizer state covers {count} parameters (expected the model's {params})")
+            raise InputError(f"{path}: optimizer state covers {count} parameters (expected the model's {params} "
+                             f"trainable ones)")
     model.load_state_dict(state)
     return model.eval()
 
@@ -346,15 +355,26 @@ def load_checkpoint(path: str | Path) -> tuple[CVAE, dict]:
     return model, payload
 
 
+def shipped_model_path(name: str = "default") -> Path:
+    """The file of the model shipped inside the package as ``name`` (:data:`SHIPPED_MODELS`)."""
+    return Path(str(resources.files(__package__).joinpath(SHIPPED_MODELS[name])))
+
+
 def default_model_path() -> Path:
-    """The model shipped inside the package (``cvae-hold`` trained on our synthetic data and the real trials)."""
-    return Path(str(resources.files(__package__).joinpath(DEFAULT_MODEL)))
+    """The model ``--model default`` loads."""
+    return shipped_model_path("default")
+
+
+def model_path(spec: str) -> Path:
+    """The checkpoint file of a ``--model`` value that names one: a shipped model's name or a path."""
+    return shipped_model_path(spec) if spec in SHIPPED_MODELS else Path(spec)
 
 
 def load_model(spec: str, device: torch.device | str = "cpu") -> CVAE:
-    """Resolve a ``--model`` value: ``default``, ``authors:PATH`` or a checkpoint path."""
-    if spec == "default":
-        model, _ = load_checkpoint(default_model_path())
+    """Resolve a ``--model`` value: a shipped model's name (``default``, ``simulated-real``),
+    ``authors:PATH`` or a checkpoint path."""
+    if spec in SHIPPED_MODELS:
+        model, _ = load_checkpoint(shipped_model_path(spec))
     elif spec.startswith("authors:"):
         from .authors import load_authors_model
 

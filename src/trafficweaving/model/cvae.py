@@ -140,6 +140,19 @@ class CVAE(nn.Module):
         self.register_buffer("latent_temperature", torch.tensor(1.0))  # divides the p(z|x) logits
         self.register_buffer("output_scale", torch.tensor(1.0))  # multiplies every output width
 
+    def with_hold_modes(self) -> "CVAE":
+        """A ``cvae-hold`` copy of this paper-variant model (``cvae``): every paper part (encoders,
+        latent, GMM decoder), the standardisation and the calibration carry this model's weights, and
+        the hold modes start switched off (:meth:`~trafficweaving.model.gmm.HoldHead.switch_off`), so
+        the copy has this model's density until fine-tuning turns them on."""
+        if self.hold is not None or self.config.name != "cvae":
+            raise ValueError(f"only a cvae model can be given hold modes (this one is {self.config.name})")
+        upgraded = CVAE(CVAEConfig.variant("cvae-hold", has_q=self.config.has_q)).to(self.feature_mean.device)
+        missing, unexpected = upgraded.load_state_dict(self.state_dict(), strict=False)
+        assert not unexpected and all(name.startswith("hold.") for name in missing), (missing, unexpected)
+        upgraded.hold.switch_off()
+        return upgraded.train(self.training)
+
     def states_to_standard(self, states: torch.Tensor) -> torch.Tensor:
         """Car states ``[..., 6]`` (m, m/s, m/s²) in the model's standardised units."""
         return (states - self.feature_mean) / self.feature_std

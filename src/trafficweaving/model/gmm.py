@@ -31,6 +31,10 @@ from torch import nn
 LOG_SIGMA_CLIP = 10.0
 LOG_DENSITY_CAP = 50.0
 HOLD_MODES = ("free", "hold x", "hold y", "hold both")
+HOLD_OFF_LOGIT = -20.0
+"""Mode logit of each hold mode in a head switched off (:meth:`HoldHead.switch_off`): weights of
+about 2e-9, so the output is the GMM's density to well under 1e-4 nats per 15-step instance, while
+the hold modes still get a gradient to switch on."""
 HOLD_MIN_SIGMA = 1e-3
 """Smallest width of a hold component (standardised units, about 0.002 m/s²): real recordings
 are float32, and a width below their resolution would only measure rounding."""
@@ -202,6 +206,14 @@ class HoldHead(nn.Module):
         super().__init__()
         self.logits = nn.Linear(units, len(HOLD_MODES))
         self.log_sigma = nn.Parameter(torch.full((2,), math.log(0.05)))
+
+    @torch.no_grad()
+    def switch_off(self) -> "HoldHead":
+        """Hold modes off: constant mode logits (free 0, each hold mode :data:`HOLD_OFF_LOGIT`), so
+        the output is the free GMM's (a paper model upgraded to ``cvae-hold`` starts as it was)."""
+        self.logits.weight.zero_()
+        self.logits.bias.copy_(torch.tensor([0.0] + [HOLD_OFF_LOGIT] * (len(HOLD_MODES) - 1)))
+        return self
 
     def widths(self) -> torch.Tensor:
         """``log s [2]``, clamped below at ``log HOLD_MIN_SIGMA``."""

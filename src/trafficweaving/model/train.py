@@ -27,7 +27,7 @@ from tqdm import tqdm
 from ..data.trials import TrialSet
 from ..errors import InputError
 from ..scenario import MIN_TRIAL_STEPS, STATE_NAMES
-from .checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
+from .checkpoint import model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
 from .cvae import CVAE, Batch, CVAEConfig
 from .evaluate import evaluate_tensors
 from .exemplars import ExemplarSet, build_exemplars, split_by_trial, state_statistics
@@ -61,9 +61,19 @@ class TrainConfig:
     checkpoint_every: int = 1000
     seed: int = 0
     hold_width_lr: float = 1e-2  # constant learning rate of the hold variant's two widths (log s)
+    hold_lr: float = 0.0  # constant learning rate of the hold variant's mode logits (0: the main learning rate)
+    objective: str = "auto"  # "elbo": the paper's (needs q); "exact": -log Σ_z p(z|x) p(y|x,z); "auto": elbo if the model has q
+    trainable: str = "all"  # which parts learn (TRAINABLE)
     schedule_start: int = 0  # step at which the KL-weight and temperature schedules start (fine-tuning)
     patience: int = 0  # early stopping: validations without improvement before stopping (0: off)
 
+
+OBJECTIVES = ("auto", "elbo", "exact")
+TRAINABLE = {  # name: the CVAE submodules that learn (None: every parameter)
+    "all": None,
+    "decoder": ("decoder_initial_state", "decoder", "gmm", "hold"),
+    "hold": ("hold",),
+}
 
 FINE_TUNING = {"lr_initial": 1e-4, "validate_every": 50, "checkpoint_every": 50}
 """Defaults of a fine-tuning run (``train --init``) that differ from training from scratch."""
@@ -106,8 +116,17 @@ def label_noise(tc: TrainConfig, config: CVAEConfig) -> float:
 
 
 def loss_terms(model: CVAE, batch: Batch, tc: TrainConfig, step: int) -> tuple[torch.Tensor, dict]:
-    """The training loss on one (already noisy) batch and its parts for logging."""
+    """The training loss on one (already noisy) batch and its parts for logging: the paper's ELBO,
+    or with ``objective="exact"`` the exact NLL over every latent value (what the models are scored
+    on; needs no q, so it fine-tunes the authors' published model), with the same dropouts and
+    scheduled sampling."""
     x = model.encode(batch, tc.recurrent_dropout)
+    if tc.objective == "exact":
+        log_p_z = model.joint_log_prob(model.p_z_logits(x, tc.p_z_dropout))  # [B, Z]
+        log_p_y, _ = model.decode(model.zx(model.latent_onehots.unsqueeze(1), x), batch, tc.recurrent_dropout,
+                                  tc.scheduled_sampling)  # [Z, B]
+        nll = -torch.logsumexp(log_p_z + log_p_y.T, dim=1).mean()
+        return nll, {"nll": nll.item(), "kl": 0.0, "beta": 0.0}
     p_log = F.log_softmax(model.p_z_logits(x, tc.p_z_dropout), dim=-1)  # [B, N_z, K_z]
     q_log = F.log_softmax(model.q_z_logits(x, batch, tc.recurrent_dropout), dim=-1)
     kl_per_var = (q_log.exp() * (q_log - p_log)).sum(-1).mean(0)  # [N_z]
@@ -120,16 +139,37 @@ def loss_terms(model: CVAE, batch: Batch, tc: TrainConfig, step: int) -> tuple[t
     return nll + beta * kl, {"nll": nll.item(), "kl": kl_per_var.sum().item(), "beta": beta}
 
 
+def set_trainable(model: CVAE, trainable: str) -> None:
+    """Freeze every parameter outside the parts named by ``trainable`` (:data:`TRAINABLE`)."""
+    if trainable not in TRAINABLE:
+        raise InputError(f"unknown trainable parts {trainable!r} (expected one of {', '.join(TRAINABLE)})")
+    if trainable == "hold" and model.hold is None:
+        raise InputError(f"--train-parts hold: a {model.config.name} model has no hold head (expected a cvae-hold model)")
+    parts = TRAINABLE[trainable]
+    for name, parameter in model.named_parameters():
+        parameter.requires_grad_(parts is None or name.split(".")[0] in parts)
+
+
 def make_optimizer(model: CVAE, tc: TrainConfig) -> torch.optim.Adam:
-    """Adam over every parameter. The hold variant's widths get their own constant learning rate
-    (``hold_width_lr``, a second group): Adam moves a parameter by about its learning rate per step,
-    and the widths must be able to travel from the simulator's exact holds to real drivers' (a
-    factor of a few in ``s``) within a short fine-tuning."""
-    if model.hold is None:
-        return torch.optim.Adam(model.parameters(), lr=tc.lr_initial)
-    widths = model.hold.log_sigma
-    rest = [p for p in model.parameters() if p is not widths]
-    return torch.optim.Adam([{"params": rest, "lr": tc.lr_initial}, {"params": [widths], "lr": tc.hold_width_lr}])
+    """Adam over the trainable parameters (:func:`set_trainable`), the first group at the main
+    learning rate. The hold variant's widths get their own constant learning rate (``hold_width_lr``):
+    Adam moves a parameter by about its learning rate per step, and the widths must be able to travel
+    from the simulator's exact holds to real drivers' (a factor of a few in ``s``) within a short
+    fine-tuning; with ``hold_lr`` the hold mode logits get one too (hold modes switched off by
+    :meth:`CVAE.with_hold_modes` start at logits of -20)."""
+    set_trainable(model, tc.trainable)
+    special = {}
+    if model.hold is not None:
+        special[id(model.hold.log_sigma)] = tc.hold_width_lr
+        if tc.hold_lr > 0:
+            special |= {id(p): tc.hold_lr for p in model.hold.logits.parameters()}
+    trainable = [p for p in model.parameters() if p.requires_grad]
+    groups = [{"params": [p for p in trainable if id(p) not in special], "lr": tc.lr_initial}]
+    for lr in sorted(set(special.values())):
+        params = [p for p in trainable if special.get(id(p)) == lr]
+        if params:
+            groups.append({"params": params, "lr": lr})
+    return torch.optim.Adam(groups)
 
 
 class _MinibatchOrder:
@@ -205,20 +245,38 @@ def check_standardisation_fits(model: CVAE, exemplars: ExemplarSet, where: str) 
                              f"{low:g}..{high:g}, i.e. data in the same units and conventions)")
 
 
-def init_model(init: str | Path, variant: str | None, train_ex: ExemplarSet) -> tuple[CVAE, dict]:
-    """The model to fine-tune from checkpoint ``init`` and its provenance, refusing another variant
-    than ``variant`` (None: any) or a standardisation that does not fit the data."""
-    payload = read_checkpoint(init)
-    model = model_from_checkpoint(payload, init)
-    if variant is not None and model.config.name != variant:
-        raise InputError(f"--init {init}: a {model.config.name} model, but --variant {variant} was asked "
-                         f"(expected a checkpoint of the same variant)")
-    if not model.config.has_q:
-        raise InputError(f"--init {init}: the model has no recognition network q(z|x,y) (expected a model trained by trafficweaving)")
-    check_standardisation_fits(model, train_ex, f"--init {init}")
-    model.set_calibration(1.0, 1.0)  # fine-tune the trained model itself; calibration is redone afterwards
+def initial_model(init: str | Path, variant: str | None) -> tuple[CVAE, dict]:
+    """The model that fine-tuning ``init`` (a checkpoint or ``authors:PATH``) starts from, before any
+    step, and its provenance: upgraded to ``cvae-hold`` with the hold modes switched off when
+    ``variant`` asks for it of a ``cvae`` model (:meth:`CVAE.with_hold_modes`), calibration reset
+    (fine-tuning changes the trained model itself; calibration is redone afterwards). Another
+    variant than ``variant`` (None: any) is refused."""
+    from .authors import load_authors_model
+
+    if str(init).startswith("authors:"):
+        payload, model = {}, load_authors_model(str(init).removeprefix("authors:"))
+    else:
+        payload = read_checkpoint(model_path(str(init)))
+        model = model_from_checkpoint(payload, init)
     provenance = {"path": str(init), "variant": model.config.name, "step": int(payload.get("step", 0)),
                   **{k: payload[k] for k in ("data_fingerprint", "recipe", "data_command") if k in payload}}
+    if variant == "cvae-hold" and model.config.name == "cvae":
+        model = model.with_hold_modes()
+        provenance["upgraded_to"] = "cvae-hold"
+    elif variant is not None and model.config.name != variant:
+        raise InputError(f"--init {init}: a {model.config.name} model, but --variant {variant} was asked "
+                         f"(expected a checkpoint of the same variant, or a cvae model for --variant cvae-hold)")
+    return model.set_calibration(1.0, 1.0), provenance
+
+
+def init_model(init: str | Path, variant: str | None, train_ex: ExemplarSet, objective: str = "auto") -> tuple[CVAE, dict]:
+    """:func:`initial_model`, refusing a standardisation that does not fit the data or the paper's
+    objective for a model without q."""
+    model, provenance = initial_model(init, variant)
+    if objective == "elbo" and not model.config.has_q:
+        raise InputError(f"--init {init}: the model has no recognition network q(z|x,y), which the paper's objective "
+                         f"needs (expected --objective exact)")
+    check_standardisation_fits(model, train_ex, f"--init {init}")
     return model, provenance
 
 
@@ -233,6 +291,8 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
     ``init``, fine-tune that checkpoint's model (``variant`` None: whatever it is). ``validation``
     replaces the split of ``trials``; ``on_validate(step, model)`` is called after each validation."""
     device = torch.device(device)
+    if tc.objective not in OBJECTIVES:
+        raise InputError(f"unknown objective {tc.objective!r} (expected one of {', '.join(OBJECTIVES)})")
     payload = read_checkpoint(resume) if resume else None
     if payload is not None:
         if "train_config" not in payload or "optimizer" not in payload:
@@ -250,12 +310,14 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
         extra.update({k: payload[k] for k in ("init", "recipe") if k in payload})
     elif init is not None:
         torch.manual_seed(tc.seed)
-        model, extra["init"] = init_model(init, variant, train_ex)
+        model, extra["init"] = init_model(init, variant, train_ex, tc.objective)
         model = model.to(device)
         tc = replace(tc, schedule_start=extra["init"]["step"])
     else:
         torch.manual_seed(tc.seed)
         model = CVAE(CVAEConfig.variant(variant or "cvae")).to(device).set_standardisation(*statistics)
+    if tc.objective == "auto":
+        tc = replace(tc, objective="elbo" if model.config.has_q else "exact")
     train_data = train_ex.standardised(model)  # fine-tuning keeps the initial model's standardisation
     val_data = None if val_ex is None else val_ex.standardised(model)
     if val_data is not None:
