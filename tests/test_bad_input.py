@@ -283,9 +283,12 @@ def test_a_random_bytes_bag_is_rejected_not_fatal(capsys, tmp_path):
 
 # ---------------------------------------------------------------- signals
 def _start(tmp_path: Path, *argv: str) -> subprocess.Popen:
+    """The command as a person starts it in a terminal: SIGINT at its default even when this test
+    runs as a background job (a shell starts those with SIGINT ignored, and children inherit that)."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     return subprocess.Popen([sys.executable, "-m", "trafficweaving", *argv], cwd=tmp_path, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _wait_until_busy(process: subprocess.Popen, cpu_seconds: float, timeout: float = 60.0) -> None:
