@@ -251,11 +251,14 @@ def test_save_recomputes_given_reserved_fields_and_export_keeps_a_valid_digest(m
     assert exported[HASH_FIELD] == tensor_digest(exported)
 
 
-def test_the_shipped_model_loads_and_verifies():
-    model, payload = load_checkpoint(default_model_path())
+@pytest.mark.parametrize("name", ["default", "simulated-real"])
+def test_the_shipped_models_load_and_verify(name):
+    from trafficweaving.model.checkpoint import shipped_model_path
+
+    model, payload = load_checkpoint(shipped_model_path(name))
     assert payload["version"] == VERSION and payload[HASH_FIELD] == tensor_digest(payload)
     assert model.config.name == "cvae-hold" and all(v.dtype == torch.float32 for v in payload["state_dict"].values())
-    assert payload["state_dict"]["output_scale"].item() == payload["calibration"]["output_scale"]
+    assert payload["state_dict"]["output_scale"].item() == pytest.approx(payload["calibration"]["output_scale"])
 
 
 def test_a_corrupted_model_fails_the_cli_in_one_line(saved, tmp_path, capsys):
