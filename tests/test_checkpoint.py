@@ -14,9 +14,9 @@ import torch
 
 from trafficweaving.errors import InputError
 from trafficweaving.model.authors import load_authors_model
-from trafficweaving.model.checkpoint import (HASH_FIELD, VERSION, choose_device, default_model_path, export_checkpoint,
+from trafficweaving.model.checkpoint import (HASH_FIELD, VERSION, choose_device, export_checkpoint,
                                              load_checkpoint, load_model, read_checkpoint, save_checkpoint,
-                                             tensor_digest, write_payload)
+                                             shipped_model_path, tensor_digest, write_payload)
 from trafficweaving.model.cvae import CVAE, CVAEConfig
 
 
@@ -253,8 +253,6 @@ def test_save_recomputes_given_reserved_fields_and_export_keeps_a_valid_digest(m
 
 @pytest.mark.parametrize("name", ["default", "simulated-real"])
 def test_the_shipped_models_load_and_verify(name):
-    from trafficweaving.model.checkpoint import shipped_model_path
-
     model, payload = load_checkpoint(shipped_model_path(name))
     assert payload["version"] == VERSION and payload[HASH_FIELD] == tensor_digest(payload)
     assert model.config.name == "cvae-hold" and all(v.dtype == torch.float32 for v in payload["state_dict"].values())
