@@ -157,11 +157,11 @@ def _fit(trials: TrialSet, parts: list[np.ndarray], held: tuple[int, ...], tc: T
         if keep_weights:
             weights[step] = _cpu_copy(model)
 
-    validation = trials.subset(np.sort(np.concatenate([parts[f] for f in held])))
     if init is not None:
         record(0, initial_model(init, variant)[0].to(device))  # as fine-tuning starts
-    train(trials.subset(train_idx), None, variant, tc, device=device, progress=bool(progress), log=log, init=init,
-          validation=validation, on_validate=record)
+    # no validation set of train's own: record() scores each held fold at the validation steps
+    train(trials.subset(train_idx), None, variant, replace(tc, validation_fraction=0.0), device=device,
+          progress=bool(progress), log=log, init=init, on_validate=record)
     return _Fit(held, steps, {f: np.array(v) for f, v in scores.items()}, weights, config[0])
 
 
@@ -183,7 +183,7 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
     only among steps where every fold beats ``reference``. With ``nested``, also train a model
     without each pair of folds {i, j}: the inner cross-validation of outer fold i (its inner folds
     are the other outer folds) chooses fold i's steps, so the nested estimate involves no choice
-    made on the fold it scores; ``out`` then also gets ``nested/`` (:func:`_save_nested_models`).
+    made on the fold it scores; ``out`` then also gets ``nested/`` (:func:`_save_fold_models`).
     ``workers`` > 1 runs the fits in that many processes."""
     if beat_reference and reference is None:
         raise InputError("--beat-reference needs a --reference model to beat")

@@ -289,7 +289,8 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
     ``checkpoint_every`` steps and at the end; None: no files). With ``resume``, continue the run
     saved in that checkpoint (its configurations are used; the data must be the same). With
     ``init``, fine-tune that checkpoint's model (``variant`` None: whatever it is). ``validation``
-    replaces the split of ``trials``; ``on_validate(step, model)`` is called after each validation."""
+    replaces the split of ``trials``; ``on_validate(step, model)`` is called after each validation
+    (without a validation set, at the steps a validation would run)."""
     device = torch.device(device)
     if tc.objective not in OBJECTIVES:
         raise InputError(f"unknown objective {tc.objective!r} (expected one of {', '.join(OBJECTIVES)})")
@@ -370,6 +371,8 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
                 elif (step - best[1]) >= tc.patience * tc.validate_every:
                     log(f"early stopping at step {step}: no improvement since step {best[1]} ({best[0]:.3f})")
                     break
+        elif on_validate is not None and (step % tc.validate_every == 0 or step == tc.steps):
+            on_validate(step, model)  # no validation set: the caller scores the model itself
         if step % tc.checkpoint_every == 0 or step == tc.steps:
             checkpoint(out)
     bar.close()
