@@ -173,6 +173,22 @@ def test_crossval_json_reports_folds_mean_and_reference(capsys, tmp_path):
     assert sorted(p.name for p in (tmp_path / "folds").iterdir()) == ["fold_1.pt", "fold_2.pt", "fold_3.pt"]
 
 
+def test_fine_tuning_a_model_into_a_driver_conditioned_on_the_guess(capsys, tmp_path):
+    from trafficweaving.model.checkpoint import load_checkpoint
+
+    data, model, driver = tmp_path / "d.parquet", tmp_path / "m.pt", tmp_path / "driver.pt"
+    run(capsys, "generate", "--trials", 6, "--seed", 3, "--out", data, "--json")
+    run(capsys, "train", "--data", data, "--out", model, "--steps", 2, "--variant", "cvae-hold", "--json")
+    code, _, _ = run(capsys, "train", "--data", data, "--init", model, "--robot-future", "guess", "--steps", 2,
+                     "--out", driver, "--json")
+    trained, payload = load_checkpoint(driver)
+    assert code == 0 and trained.config.robot_future == "guess" and payload["init"]["robot_future"] == "recorded"
+    code, out, _ = run(capsys, "realism", "--human", f"model:{driver}", "--data", data, "--rollouts", 2, "--json")
+    assert code == 0 and json.loads(out)["streams"] == 12
+    code, _, err = run(capsys, "bench", "plan", "--model", driver, "--json")
+    assert code == 2 and "cannot tell candidate robot futures apart" in err
+
+
 def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoints(capsys, tmp_path):
     from trafficweaving.model.checkpoint import load_checkpoint
 
@@ -192,6 +208,10 @@ def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoin
     assert payload["calibration"]["nll_exact"] == report["nll_exact"]
     fold, fold_payload = load_checkpoint(tmp_path / "cfolds" / "fold_2.pt")
     assert fold.output_scale.item() == pytest.approx(chosen[1]) and len(fold_payload["held_out_trials"]) == 3
+    # worker processes score the same grid (their models are private copies, not shared and overwritten)
+    code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--out", tmp_path / "w.pt",
+                       "--samples", 10, "--temperatures", "1,2", "--scales", "1,1.5,2", "--workers", 2, "--json")
+    assert code == 0 and json.loads(out)["grid"] == report["grid"]
     code, _, err = run(capsys, "calibrate", "--data", data, "--folds", tmp_path, "--model", model, "--out", tmp_path / "x.pt")
     assert code == 2 and "no fold_K.pt files" in err and err.count("\n") == 1
 

@@ -344,7 +344,7 @@ def test_sampling_rejects_bad_inputs(small_trials):
 
 
 # ---------------------------------------------------------------- calibration
-def test_calibration_scales_the_output_widths_and_tempers_the_latent_prior(small_trials):
+def test_calibration_scales_the_gmm_widths_and_tempers_the_latent_prior(small_trials):
     model = fitted_model(small_trials, CVAEConfig.variant("cvae-hold"))
     batch = build_exemplars(small_trials).standardised(model).batch(torch.arange(6))
     x = model.encode(batch)
@@ -354,7 +354,7 @@ def test_calibration_scales_the_output_widths_and_tempers_the_latent_prior(small
     model.set_calibration(2.0, 1.5)
     _, wide = model.decode(zx, batch)
     torch.testing.assert_close(wide.gmm.log_sigma, plain.gmm.log_sigma + math.log(1.5))
-    torch.testing.assert_close(wide.log_s, plain.log_s + math.log(1.5))
+    torch.testing.assert_close(wide.log_s, plain.log_s)  # a held control's width is not widened
     torch.testing.assert_close(model.p_z_logits(x), logits / 2.0)
     with pytest.raises(ValueError, match="calibration must be positive"):
         model.set_calibration(0.0, 1.0)
@@ -367,3 +367,23 @@ def test_calibration_choice_is_the_best_nll_within_the_coverage_band():
     assert _choose([row(-21, 0.78, 0.74), row(-20, 0.86, 0.85), row(-19, 0.9, 0.9), row(-25, 0.97, 0.96)]) == 1
     # none inside: the one whose worse direction is closest to 90 % (|0.99 - 0.9| < |0.78 - 0.9|)
     assert _choose([row(-21, 0.70, 0.74), row(-20, 0.80, 0.78), row(-22, 0.99, 0.98)]) == 2
+
+
+# ---------------------------------------------------------------- conditioning on a guess (driver models)
+def test_a_guess_model_sees_the_other_car_holding_its_acceleration_not_its_recorded_future(small_trials):
+    from trafficweaving.dynamics import constant_acceleration_future
+
+    exemplars = build_exemplars(small_trials)
+    model = fitted_model(small_trials, CVAEConfig.variant("cvae-hold", robot_future="guess"))
+    batch = exemplars.standardised(model).batch(torch.arange(40))
+    s, t = exemplars.stream[:40], exemplars.t[:40]
+    present = torch.as_tensor(exemplars.streams[s, t, 0])
+    expected = model.states_to_standard(constant_acceleration_future(present))
+    torch.testing.assert_close(batch.robot_future, expected)
+    recorded = exemplars.standardised(fitted_model(small_trials)).batch(torch.arange(40))
+    assert not torch.allclose(batch.robot_future, recorded.robot_future)  # the trials' cars do not hold
+    torch.testing.assert_close(batch.history, recorded.history)
+    with pytest.raises(InputError, match="cannot tell candidate robot futures apart"):
+        HumanPredictor(model)
+    with pytest.raises(ValueError, match="robot_future must be one of recorded, guess"):
+        CVAEConfig(robot_future="oracle")

@@ -5,16 +5,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from trafficweaving.data.trials import load_trials
-from trafficweaving.dynamics import future_states
+from trafficweaving.dynamics import constant_acceleration_future, future_states
 from trafficweaving.errors import InputError
 from trafficweaving.model.checkpoint import load_model
 from trafficweaving.scenario import DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y, MIN_HISTORY, study_initial_conditions
 from trafficweaving.sim.drivers import DriverModel, DriverStyles
 from trafficweaving.sim.generate import generate_trials
-from trafficweaving.sim.humans import (ModelDriver, ReplayDriver, SampledDrivers, SyntheticDrivers,
-                                       constant_acceleration_future, human_agent)
+from trafficweaving.sim.humans import ModelDriver, ReplayDriver, SampledDrivers, SyntheticDrivers, human_agent
 from trafficweaving.sim.world import run_episodes
 
 
@@ -50,14 +50,12 @@ def run(human, start, seed=0, robot=None):
 
 
 class Recorder:
-    """Wraps a predictor's ``prepare``/``sample``: records the situations and the samples."""
+    """Wraps a model driver's ``sample``: records each call's situations and the blocks drawn."""
 
     def __init__(self, agent: ModelDriver):
-        self.prepared, self.samples, predictor = [], [], agent.predictor
-        prepare, sample = predictor.prepare, predictor.sample
-        predictor.prepare = lambda history, futures: (self.prepared.append((np.array(history), np.array(futures))),
-                                                      prepare(history, futures))[1]
-        predictor.sample = lambda *args: self.samples.append(sample(*args)) or self.samples[-1]
+        self.calls, self.blocks, sample = [], [], agent.sample
+        agent.sample = lambda histories, futures: (self.calls.append((np.array(histories), np.array(futures))),
+                                                   self.blocks.append(sample(histories, futures)))[1] or self.blocks[-1]
 
 
 @pytest.fixture(scope="module")
@@ -115,6 +113,7 @@ def test_constant_acceleration_future():
     present = np.array([[-100.0, -1.8, 29.0, 0.1, 0.5, -0.2], [-90.0, -6.1, 27.0, 0.0, 0.0, 0.0]])
     future = constant_acceleration_future(present)
     assert future.shape == (2, HORIZON, 6)
+    np.testing.assert_allclose(constant_acceleration_future(torch.as_tensor(present)).numpy(), future)
     tau = DT * np.arange(1, HORIZON + 1)[:, None]  # s
     np.testing.assert_allclose(future[..., 4:6], np.repeat(present[:, None, 4:6], HORIZON, 1))
     np.testing.assert_allclose(future[..., 2:4], present[:, None, 2:4] + present[:, None, 4:6] * tau, atol=1e-12)
@@ -134,8 +133,8 @@ def test_model_driver_conditions_on_its_history_robot_first_and_the_guess(defaul
     np.testing.assert_array_equal(ordered[0, :, 0], history[0, 1])
     np.testing.assert_array_equal(ordered[0, :, 1], history[0, 0])
     np.testing.assert_array_equal(futures, constant_acceleration_future(history[:, 1, -1]))
-    seen_history, seen_future = recorder.prepared[0]
-    np.testing.assert_array_equal(seen_history, ordered[0])
+    seen_history, seen_future = recorder.calls[0]
+    np.testing.assert_array_equal(seen_history, ordered)
     np.testing.assert_array_equal(seen_future, futures)
 
 
@@ -148,21 +147,20 @@ def test_model_driver_samples_every_3_steps_and_executes_the_sample(default_mode
     # holds its start acceleration until MIN_HISTORY steps exist; then one sample per block
     held = np.repeat(start[:, 1, None, 4:6], MIN_HISTORY - 1, 1)
     np.testing.assert_array_equal(states[:, 1, 1:MIN_HISTORY, 4:6], held)
-    assert [len(h) for h, _ in recorder.prepared[::2]] == list(range(MIN_HISTORY, steps, 3))
-    blocks = [s[0, 0, :3].double().numpy() for s in recorder.samples]
+    assert [h.shape[1] for h, _ in recorder.calls] == list(range(MIN_HISTORY, steps, 3))  # both episodes at once
     for k, first in enumerate(range(MIN_HISTORY, steps, 3)):
         for episode in (0, 1):
             done = min(3, steps - first)
-            np.testing.assert_allclose(states[episode, 1, first:first + done, 4:6], blocks[2 * k + episode][:done])
-    assert not np.allclose(blocks[0], blocks[2])  # a new situation, a new block
+            np.testing.assert_allclose(states[episode, 1, first:first + done, 4:6], recorder.blocks[k][episode, :done])
+    assert not np.allclose(recorder.blocks[0], recorder.blocks[1])  # a new situation, a new block
 
 
 def test_model_driver_with_the_robot_plan(default_model):
     agent = ModelDriver(default_model, robot_plan=True)
     recorder = Recorder(agent)
     states = run(agent, study_starts(5), robot=LaneChangeRobot(agent), seed=1)
-    for history, future in recorder.prepared:
-        np.testing.assert_array_equal(future[0], future_states(history[-1, 0], np.zeros((HORIZON, 2))))
+    for history, future in recorder.calls:
+        np.testing.assert_array_equal(future[0], future_states(history[0, -1, 0], np.zeros((HORIZON, 2))))
     assert np.isfinite(states).all()
     with pytest.raises(RuntimeError, match="robot_future"):
         run(ModelDriver(default_model, robot_plan=True), study_starts(5))

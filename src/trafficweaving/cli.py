@@ -115,15 +115,20 @@ def _fmt(value) -> str:
 
 
 def cmd_generate(args) -> None:
+    from .model.checkpoint import choose_device
     from .sim.generate import generate_trials
 
     out = check_output_file(args.out, "--out")
     start = time.perf_counter()
-    trials, report = generate_trials(args.trials, seed=args.seed, pairs=args.pairs, progress=not args.json)
+    try:
+        trials, report = generate_trials(args.trials, seed=args.seed, pairs=args.pairs, progress=not args.json,
+                                         drivers=args.drivers, device=choose_device(args.device))
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     trials.write_parquet(out)
     seconds = time.perf_counter() - start
     payload = {"trials": len(trials), "simulated": report.simulated, "rejected": report.rejected,
-               "seed": args.seed, "out": str(out), "seconds": round(seconds, 3)}
+               "drivers": args.drivers, "seed": args.seed, "out": str(out), "seconds": round(seconds, 3)}
     rejected = ", ".join(f"{k} {v}" for k, v in report.rejected.items())
     _emit(args, payload, f"wrote {len(trials)} valid trials to {out} in {seconds:.1f} s "
                          f"({report.simulated} simulated; rejected: {rejected})")
@@ -203,7 +208,7 @@ def _train_config(args):
         tc = replace(tc, **FINE_TUNING)
     overrides = {"lr_initial": args.lr, "validate_every": args.validate_every,
                  "patience": getattr(args, "patience", None), "objective": args.objective, "hold_lr": args.hold_lr,
-                 "trainable": args.train_parts}
+                 "trainable": args.train_parts, "robot_future": args.robot_future}
     tc = replace(tc, **{k: v for k, v in overrides.items() if v is not None})
     return replace(tc, lr_final=min(tc.lr_final, tc.lr_initial), checkpoint_every=min(tc.checkpoint_every, tc.validate_every))
 
@@ -439,6 +444,45 @@ def cmd_simulate(args) -> None:
     _emit(args, summary, summary_table(summary))
 
 
+def cmd_realism(args) -> None:
+    """Closed-loop realism of a human agent on recorded trials (:mod:`trafficweaving.sim.realism`)."""
+    import numpy as np
+
+    from .data.trials import load_trials
+    from .model.checkpoint import choose_device
+    from .sim.humans import HUMAN_SPECS, ModelDriver, human_agent
+    from .sim.realism import realism
+
+    if (args.human is None) == (args.folds is None):
+        raise InputError(f"realism needs one of --human SPEC ({HUMAN_SPECS}) or --folds DIR (out-of-fold models)")
+    trials = load_trials(args.data)
+    device = choose_device(args.device)
+    if args.folds is not None:
+        from .model.crossval import out_of_fold_models
+
+        folds = out_of_fold_models(args.folds)
+        held = np.concatenate([np.asarray(ids) for _, ids in folds])
+        missing = np.setdiff1d(trials.trial_ids[(trials.roles == "human").any(axis=1)], held)
+        if len(missing):
+            raise InputError(f"--folds {args.folds}: trial {missing[0]} of {args.data} is held out by no fold (expected "
+                             f"the folds of `trafficweaving crossval --out` on the same data)")
+        agents = lambda ids: [(np.asarray(h), ModelDriver(m.to(device))) for m, h in folds]  # noqa: E731
+    else:
+        agent = human_agent(args.human, device)
+        agents = lambda ids: [(ids, agent)]  # noqa: E731
+    try:
+        result = realism(trials, agents, rollouts=args.rollouts, seed=args.seed, progress=not args.json)
+    except ValueError as exc:
+        raise InputError(f"{args.data}: {exc}") from None
+    summary = {"human": args.human or f"out-of-fold:{args.folds}", "data": str(args.data), "seed": args.seed,
+               **result.summary()}
+    groups = ", ".join(f"{g} {v:.3f}" for g, v in summary["groups"].items())
+    rates = "; ".join(f"{k.replace('_', ' ')} {100 * summary[k + '_rate']:.1f} % (real {100 * summary['real_' + k + '_rate']:.1f} %)"
+                      for k in ("swap", "off_road", "collision"))
+    _emit(args, summary, f"{summary['human']}: realism {summary['realism']:.3f} ({groups}) over {summary['streams']} "
+                         f"recorded humans × {summary['rollouts']} rollouts\n{rates}")
+
+
 def cmd_plot_episode(args) -> None:
     """The paper's Fig. 6 of one trial or episode, and optionally its animation."""
     from .data.trials import load_trials
@@ -485,7 +529,7 @@ def cmd_demo(args) -> None:
 # ---------------------------------------------------------------- parser
 def _add_schedule_options(p, steps: int) -> None:
     """Options shared by ``train`` and ``crossval``."""
-    from .model.cvae import VARIANTS
+    from .model.cvae import ROBOT_FUTURES, VARIANTS
     from .model.train import OBJECTIVES, TRAINABLE
 
     p.add_argument("--variant", choices=tuple(VARIANTS), help="model variant (default cvae; with --init, the model's own, "
@@ -501,6 +545,9 @@ def _add_schedule_options(p, steps: int) -> None:
                                                                    "GMM and hold heads), hold (the hold head alone)")
     p.add_argument("--hold-lr", type=_float_in(0, 1), help="constant learning rate of the hold modes' logits "
                                                            "(default: the main learning rate)")
+    p.add_argument("--robot-future", choices=ROBOT_FUTURES, help="what the model takes as the other car's future: "
+                   "recorded (the paper's, for planning; default) or guess (the other car holding its present "
+                   "acceleration: a driver model, docs/realism.md); with --init, default the init's")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda, cuda:N")
     p.add_argument("--json", action="store_true")
@@ -510,6 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .model.calibrate import SCALES, TEMPERATURES
     from .model.predictor import PRECISIONS
     from .planning.candidates import N_CANDIDATES
+    from .sim.realism import ROLLOUTS
     from .web.options import COUNTDOWN_S, MODES, PLAN_DEADLINE_S
 
     parser = _Parser(prog="trafficweaving", description=__doc__.splitlines()[0])
@@ -519,6 +567,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trials", type=POSITIVE, default=1105, help="number of valid trials (default 1105, as the paper)")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--pairs", type=POSITIVE, default=19, help="pairs of simulated drivers (default 19, as the study)")
+    p.add_argument("--drivers", default="synthetic", help="who drives both cars: synthetic (the simulated drivers, "
+                   "default) or any human agent, e.g. model:driver (self-play; docs/realism.md)")
+    p.add_argument("--device", default="cpu", help="a model driver's device: cpu (default), auto, cuda, cuda:N")
     p.add_argument("--out", required=True, help="output Parquet file")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_generate)
@@ -634,7 +685,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="closed-loop episodes of a robot against a human, with metrics and CIs")
     p.add_argument("--episodes", type=POSITIVE, required=True, help="episodes 0..N-1 (each from --seed and its index)")
     p.add_argument("--robot", default="planner", help="planner (default), planner-cv or rules")
-    p.add_argument("--human", required=True, help="synthetic, model:SPEC, replay:FILE or replay:FILE#K")
+    p.add_argument("--human", required=True, help="synthetic, model:SPEC, replay:FILE or replay:FILE#K, rules, "
+                                                  "constant-velocity")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--model", default="default", help="the planner's human model: checkpoint path, default, or authors:PATH")
     timing = p.add_mutually_exclusive_group()
@@ -652,6 +704,17 @@ def build_parser() -> argparse.ArgumentParser:
                    "episodes/episode_NNNNNN.parquet and summary.json; a rerun resumes")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("realism", help="closed-loop realism of a human agent on recorded trials (WOSAC-style, docs/realism.md)")
+    p.add_argument("--human", help="the agent: synthetic, model:SPEC, rules, constant-velocity, replay:FILE[#K]")
+    p.add_argument("--folds", metavar="DIR", help="instead of --human: the fold models of `crossval --out DIR` on the "
+                   "same data, each driving the trials it did not train on (out-of-fold)")
+    p.add_argument("--data", required=True, help="recorded trials (Parquet); every car labelled human is rolled out")
+    p.add_argument("--rollouts", type=_int_at_least(2), default=ROLLOUTS, help=f"rollouts per recorded human (default {ROLLOUTS})")
+    p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--device", default="cpu", help="a model agent's device: cpu (default), auto, cuda, cuda:N")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_realism)
 
     p = sub.add_parser("plot-episode", help="the paper's Fig. 6 of an episode (or any trial), and its animation")
     p.add_argument("data", help="an episode log (simulate's DIR/episodes/episode_K.parquet) or any dataset")

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .scenario import DT
+from .scenario import DT, HORIZON
 
 
 def _cumsum(a, axis: int):
@@ -64,6 +64,16 @@ def future_states(present, accelerations, dt: float = DT):
     p, v = integrate_trapezoid(present[..., 0:2], present[..., 2:4], acc, dt)
     stack = torch.stack if tensor else np.stack
     return stack([p[..., 0, 1:], p[..., 1, 1:], v[..., 0, 1:], v[..., 1, 1:], acc[..., 0, 1:], acc[..., 1, 1:]], -1)
+
+
+def constant_acceleration_future(present, steps: int = HORIZON, dt: float = DT):
+    """A car's states ``[..., steps, 6]`` at steps t+1..t+steps when it holds its present
+    acceleration, from its present state ``present [..., 6]`` (m, m/s, m/s²; trapezoid rule,
+    :func:`future_states`): what a driver can guess of the other car's future. NumPy or torch."""
+    if isinstance(present, torch.Tensor):
+        return future_states(present, present[..., None, 4:6].expand(*present.shape[:-1], steps, 2), dt)
+    present = np.asarray(present, dtype=float)
+    return future_states(present, np.repeat(present[..., None, 4:6], steps, axis=-2), dt)
 
 
 def robot_longitudinal(x0, xd0, applied, dt: float = DT):

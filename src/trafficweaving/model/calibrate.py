@@ -22,6 +22,7 @@ recipe, steps and calibration are chosen on its inner folds alone, as a new tria
 
 from __future__ import annotations
 
+import copy
 import multiprocessing
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass
@@ -70,12 +71,15 @@ def _choose(grid: list[dict]) -> int:
 
 
 def _scored(pairs: list, trials: TrialSet, temperature: float, scale: float, samples: int, seed: int) -> InstanceMetrics:
-    """The instances of every ``(model, held-out trial ids)`` of ``pairs``, each scored by its model
-    calibrated with ``temperature`` and ``scale``."""
+    """The instances of every ``(model, held-out trial ids)`` of ``pairs``, each scored by a copy of
+    its model calibrated with ``temperature`` and ``scale``. A copy: models sent to pool workers
+    arrive in memory shared between the workers (torch's multiprocessing pickler), so calibrating
+    them in place would let concurrent grid points overwrite each other's setting."""
     parts = []
     for model, held in pairs:
         fold = trials.subset(np.flatnonzero(np.isin(trials.trial_ids, held)))
-        parts.append(evaluate_instances(model.set_calibration(temperature, scale), fold, build_exemplars(fold),
+        calibrated = copy.deepcopy(model).set_calibration(temperature, scale)
+        parts.append(evaluate_instances(calibrated, fold, build_exemplars(fold),
                                         samples=samples, ade_samples=20, seed=seed))
     return InstanceMetrics.concatenate(parts)
 
@@ -113,7 +117,7 @@ def _uncalibrated_nll(pairs: list, trials: TrialSet) -> float:
     nll = []
     for model, held in pairs:
         fold = trials.subset(np.flatnonzero(np.isin(trials.trial_ids, held)))
-        nll.append(evaluate(model.set_calibration(1.0, 1.0), build_exemplars(fold)).nll_exact)
+        nll.append(evaluate(copy.deepcopy(model).set_calibration(1.0, 1.0), build_exemplars(fold)).nll_exact)
     return float(np.concatenate(nll).mean())
 
 

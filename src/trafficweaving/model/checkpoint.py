@@ -1,7 +1,7 @@
 """Model files: saving and loading checkpoints, and resolving ``--model`` specifications.
 
 A checkpoint is a ``torch.save`` dictionary readable with ``weights_only=True`` (no pickled code):
-``format``, ``version`` (2), ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
+``format``, ``version`` (3), ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
 and standardisation buffers), ``tensor_sha256`` (a SHA-256 of every tensor in the file, see
 :func:`tensor_digest`), ``data_fingerprint``, ``step``, ``history`` (validation NLL by step) and, in
 training checkpoints, ``train_config``, ``optimizer`` and ``rng`` for resuming.
@@ -28,15 +28,20 @@ import torch
 
 from ..atomic import atomic_write
 from ..errors import InputError
-from .cvae import CVAE, CVAEConfig
+from .cvae import CVAE, ROBOT_FUTURES, CVAEConfig
+from .gmm import HOLD_MIN_SIGMA, LOG_SIGMA_CLIP
 
 FORMAT = "trafficweaving-cvae"
-VERSION = 2
-"""2: adds ``tensor_sha256``; version 1 files (no digest) are refused."""
+VERSION = 3
+"""2: adds ``tensor_sha256`` (version 1 files, without it, are refused); 3: the output scale no
+longer widens the hold modes (a version-2 file is read with its scale folded into its hold widths,
+the same density: :func:`upgrade_state`)."""
+READABLE_VERSIONS = (2, 3)
 HASH_FIELD = "tensor_sha256"
 SHIPPED_MODELS = {  # --model name: file in the package (docs/model.md, "The shipped models")
     "default": "default_cvae.pt",  # the authors' real-data model with hold modes, fine-tuned on the 30 real trials
     "simulated-real": "simulated_real_cvae.pt",  # no authors' weights: simulated drivers, then the 30 real trials
+    "driver": "driver_cvae.pt",  # a driver: the default's recipe conditioned on a guess of the other car (docs/realism.md)
 }
 EXPECTED = "a trafficweaving model checkpoint (.pt written by `trafficweaving train`)"
 WRITTEN_BY_US = "expected a checkpoint as written by trafficweaving"
@@ -249,6 +254,8 @@ def config_from_checkpoint(payload: dict, path: str | Path) -> CVAEConfig:
             ok, expected = _is_int(value) and 1 <= value <= MAX_SIZE, f"an integer in 1..{MAX_SIZE}"
         elif isinstance(default, float):
             ok, expected = _is_number(value) and math.isfinite(value), "a finite number"
+        elif key == "robot_future":
+            ok, expected = value in ROBOT_FUTURES, " or ".join(ROBOT_FUTURES)
         else:
             ok, expected = default is None or isinstance(value, type(default)), type(default).__name__
         if not ok:
@@ -297,6 +304,7 @@ def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
         name = sorted(missing or extra)[0]
         raise InputError(f"{path}: checkpoint {'lacks' if missing else 'has unexpected'} tensor {name} (expected a {model.config.name} model)")
     check_tensors(state, expected, path)
+    state = upgrade_state(state, payload["version"])
     optimizer = payload.get("optimizer")
     if isinstance(optimizer, dict) and isinstance(optimizer.get("param_groups"), list):
         from .train import TRAINABLE  # here: train imports this module
@@ -310,6 +318,16 @@ def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
                              f"trainable ones)")
     model.load_state_dict(state)
     return model.eval()
+
+
+def upgrade_state(state: dict, version: int) -> dict:
+    """A checked ``state_dict`` of a ``version`` checkpoint as this version's model reads it: in
+    version 2 the output scale also multiplied the hold widths, so a version-2 hold model gets
+    ``log s + log output_scale`` as its hold log-widths (the widths it had; its density is kept)."""
+    if version >= 3 or "hold.log_sigma" not in state:
+        return state
+    log_sigma = state["hold.log_sigma"].clamp(math.log(HOLD_MIN_SIGMA), LOG_SIGMA_CLIP)
+    return state | {"hold.log_sigma": log_sigma + torch.log(state["output_scale"])}
 
 
 def _read(path: str | Path) -> tuple[dict, CVAE]:
@@ -326,9 +344,9 @@ def _read(path: str | Path) -> tuple[dict, CVAE]:
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise InputError(f"{path}: not a trafficweaving model checkpoint (expected {EXPECTED})")
     version = payload.get("version")
-    if version != VERSION or isinstance(version, bool):
-        raise InputError(f"{path}: checkpoint version {_short(version)} (expected version {VERSION}, which carries a "
-                         f"SHA-256 of its tensors; version 1 files are no longer read)")
+    if version not in READABLE_VERSIONS or isinstance(version, bool):
+        raise InputError(f"{path}: checkpoint version {_short(version)} (expected version 2 or {VERSION}, which carry "
+                         f"a SHA-256 of their tensors; version 1 files are no longer read)")
     stored = payload.get(HASH_FIELD)
     if not (isinstance(stored, str) and re.fullmatch(r"[0-9a-f]{64}", stored)):
         raise InputError(f"{path}: checkpoint has no valid {HASH_FIELD} ({WRITTEN_BY_US})")

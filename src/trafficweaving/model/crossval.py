@@ -158,7 +158,7 @@ def _fit(trials: TrialSet, parts: list[np.ndarray], held: tuple[int, ...], tc: T
             weights[step] = _cpu_copy(model)
 
     if init is not None:
-        record(0, initial_model(init, variant)[0].to(device))  # as fine-tuning starts
+        record(0, initial_model(init, variant, tc.robot_future)[0].to(device))  # as fine-tuning starts
     # no validation set of train's own: record() scores each held fold at the validation steps
     train(trials.subset(train_idx), None, variant, replace(tc, validation_fraction=0.0), device=device,
           progress=bool(progress), log=log, init=init, on_validate=record)

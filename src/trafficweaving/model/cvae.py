@@ -38,12 +38,21 @@ VARIANTS = {  # name: (latent_vars N_z, latent_classes K_z, components M, hold)
 }
 
 
+ROBOT_FUTURES = ("recorded", "guess")
+"""What a model takes as the other car's future (:attr:`CVAEConfig.robot_future`)."""
+
+
 @dataclass(frozen=True)
 class CVAEConfig:
     """Architecture. Defaults are the paper's CVAE; :meth:`variant` builds the Fig. 3 ablations
     and ``cvae-hold``. ``has_q`` is False for a model without the recognition network q(z|x,y)
     (the authors' published weights only hold what prediction needs); ``hold`` mixes "hold the
-    previous action" modes into each step's output (:class:`~trafficweaving.model.gmm.HoldMixture`)."""
+    previous action" modes into each step's output (:class:`~trafficweaving.model.gmm.HoldMixture`).
+    ``robot_future`` is what the model is conditioned on as the other car's future (one of
+    :data:`ROBOT_FUTURES`): ``recorded``, the paper's (its recorded or candidate future, for
+    planning), or ``guess``, the other car holding its present acceleration
+    (:func:`~trafficweaving.dynamics.constant_acceleration_future`), all a driver can know: such a
+    model drives a car (docs/realism.md) but cannot tell candidate futures apart."""
 
     latent_vars: int = 2
     latent_classes: int = 5
@@ -54,6 +63,11 @@ class CVAEConfig:
     p_z_hidden: int = 16
     has_q: bool = True
     hold: bool = False
+    robot_future: str = "recorded"
+
+    def __post_init__(self):
+        if self.robot_future not in ROBOT_FUTURES:
+            raise ValueError(f"robot_future must be one of {', '.join(ROBOT_FUTURES)}, got {self.robot_future!r}")
 
     @staticmethod
     def variant(name: str, **overrides) -> "CVAEConfig":
@@ -138,7 +152,7 @@ class CVAE(nn.Module):
             self.register_buffer(name, torch.zeros(size) if "mean" in name else torch.ones(size))
         # calibration, set after training (model/calibrate.py); 1 and 1 leave the trained model as it is
         self.register_buffer("latent_temperature", torch.tensor(1.0))  # divides the p(z|x) logits
-        self.register_buffer("output_scale", torch.tensor(1.0))  # multiplies every output width
+        self.register_buffer("output_scale", torch.tensor(1.0))  # multiplies every GMM width (not the hold modes')
 
     def with_hold_modes(self) -> "CVAE":
         """A ``cvae-hold`` copy of this paper-variant model (``cvae``): every paper part (encoders,
@@ -232,10 +246,11 @@ class CVAE(nn.Module):
     # -- decoder ----------------------------------------------------------------------------
     def output(self, h: torch.Tensor, previous: torch.Tensor) -> GMM | HoldMixture:
         """Per-step output distribution from decoder outputs ``h [..., units]`` and the action fed
-        at that step, ``previous [..., 2]`` (broadcastable; only the hold variant uses it)."""
-        log_scale = torch.log(self.output_scale)
-        gmm = self.gmm(h, log_scale)
-        return gmm if self.hold is None else self.hold(h, gmm, previous, log_scale)
+        at that step, ``previous [..., 2]`` (broadcastable; only the hold variant uses it). The
+        output scale widens the GMM only: a hold mode's width is the resolution of a held control,
+        and widening it would cost likelihood without adding spread (model/calibrate.py)."""
+        gmm = self.gmm(h, torch.log(self.output_scale))
+        return gmm if self.hold is None else self.hold(h, gmm, previous)
 
     def _decoder_parts(self, zx: torch.Tensor, robot_inputs: torch.Tensor, action_inputs: torch.Tensor | None):
         """Split the decoder's input projection: the ``zx`` part (constant over the horizon)
@@ -311,6 +326,29 @@ class CVAE(nn.Module):
                 action = dist.sample(uniform=noise[0][:, :, k].reshape(-1), normal=noise[1][:, :, k].reshape(-1, 2))
             samples.append(action)
         return torch.stack(samples, dim=1).view(s, b, HORIZON, ACTION_DIM)
+
+    def situations(self, histories: torch.Tensor, robot_futures: torch.Tensor) -> Batch:
+        """The :class:`Batch` (standardised, no ``y``) of ``B`` situations at one present step t:
+        ``histories [B, t+1, 2, 6]`` physical states (m, m/s, m/s²) of the robot (index 0) and the
+        human at steps 0..t, ``robot_futures [B, 15, 6]`` the robot's states at steps t+1..t+15.
+        Tensors in the model's dtype and on its device."""
+        b, steps = histories.shape[:2]
+        standard = self.states_to_standard(histories).reshape(b, steps, 2 * STATE_DIM)
+        return Batch(history=standard, t=torch.full((b,), steps - 1, device=histories.device),
+                     robot_present=standard[:, -1, :STATE_DIM], robot_future=self.states_to_standard(robot_futures),
+                     human_present=standard[:, -1, STATE_DIM:],
+                     human_present_action=self.actions_to_standard(histories[:, -1, 1, ACCEL]))
+
+    @torch.no_grad()
+    def sample_futures(self, batch: Batch, samples: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """``samples`` futures of the human's actions per situation of ``batch`` (its ``y`` is not
+        used), ``[S, B, 15, 2]`` standardised: each draws its latent value from p(z|x), then its
+        actions from the decoder (:meth:`sample_actions`)."""
+        x = self.encode(batch)
+        p_z = self.joint_log_prob(self.p_z_logits(x)).exp()  # [B, Z]
+        z = torch.multinomial(p_z, samples, replacement=True, generator=generator).T  # [S, B]
+        return self.sample_actions(self.zx(self.latent_onehots[z], x), self.decoder_robot_inputs(batch),
+                                   batch.human_present_action, generator)
 
     def zx(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``concat(z, x)`` for latents ``z [S, B, N_z·K_z]`` (or ``[S, 1, ·]``) and ``x [B, x_size]``."""

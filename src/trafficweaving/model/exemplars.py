@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ..data.trials import TrialSet
+from ..dynamics import constant_acceleration_future
 from ..scenario import HORIZON, MIN_HISTORY
 from .cvae import ACCEL, CVAE, STATE_DIM, Batch
 
@@ -56,11 +57,13 @@ class ExemplarSet:
         streams = torch.as_tensor(self.streams, dtype=torch.float64, device=device)  # [S, T, 2, 6]
         states = torch.nan_to_num(model.states_to_standard(streams))
         actions = torch.nan_to_num(model.actions_to_standard(streams[:, :, 1, ACCEL]))
+        guess = model.config.robot_future == "guess"
         return ExemplarTensors(
             states=states.reshape(*states.shape[:2], 2 * STATE_DIM).to(dtype),
             actions=actions.to(dtype),
             stream=torch.as_tensor(self.stream, device=device),
             t=torch.as_tensor(self.t, device=device),
+            guess_units=(model.feature_mean, model.feature_std) if guess else None,
         )
 
     def fingerprint(self) -> str:
@@ -74,28 +77,39 @@ class ExemplarSet:
 @dataclass
 class ExemplarTensors:
     """Standardised streams on a device: ``states [S, T, 12]`` (other car, human),
-    ``actions [S, T, 2]`` (the human's, label-standardised), exemplars ``stream [E]``, ``t [E]``."""
+    ``actions [S, T, 2]`` (the human's, label-standardised), exemplars ``stream [E]``, ``t [E]``.
+    ``guess_units``: for a model conditioned on a guess of the other car's future
+    (``CVAEConfig.robot_future == "guess"``), its state mean and std ``[6]``, so that batches carry
+    that guess instead of the recorded future; None otherwise."""
 
     states: torch.Tensor
     actions: torch.Tensor
     stream: torch.Tensor
     t: torch.Tensor
+    guess_units: tuple[torch.Tensor, torch.Tensor] | None = None
 
     def __len__(self) -> int:
         return self.t.shape[0]
 
     def batch(self, index: torch.Tensor) -> Batch:
-        """The :class:`Batch` of exemplars ``index [B]``; the history is cut at the batch's largest ``t``."""
+        """The :class:`Batch` of exemplars ``index [B]``; the history is cut at the batch's largest
+        ``t``; the other car's future is its recorded one, or the guess (``guess_units``)."""
         s, t = self.stream[index], self.t[index]
         steps = int(t.max()) + 1
         future = t.unsqueeze(1) + torch.arange(1, HORIZON + 1, device=t.device)  # [B, N]
         states = self.states[s]  # [B, T, 12]
         rows = torch.arange(len(s), device=t.device)
+        robot_present = states[rows, t, :STATE_DIM]
+        if self.guess_units is None:
+            robot_future = states[rows.unsqueeze(1), future, :STATE_DIM]
+        else:  # the other car holding its present acceleration, computed in physical units
+            mean, std = self.guess_units
+            robot_future = ((constant_acceleration_future(robot_present * std + mean) - mean) / std).to(states.dtype)
         return Batch(
             history=states[:, :steps],
             t=t,
-            robot_present=states[rows, t, :STATE_DIM],
-            robot_future=states[rows.unsqueeze(1), future, :STATE_DIM],
+            robot_present=robot_present,
+            robot_future=robot_future,
             human_present=states[rows, t, STATE_DIM:],
             human_present_action=self.actions[s, t],
             y=self.actions[s.unsqueeze(1), future],

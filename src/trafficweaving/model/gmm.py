@@ -219,8 +219,6 @@ class HoldHead(nn.Module):
         """``log s [2]``, clamped below at ``log HOLD_MIN_SIGMA``."""
         return self.log_sigma.clamp(min=math.log(HOLD_MIN_SIGMA), max=LOG_SIGMA_CLIP)
 
-    def forward(self, h: torch.Tensor, gmm: GMM, previous: torch.Tensor,
-                log_scale: torch.Tensor | float = 0.0) -> HoldMixture:
-        """``h [..., units]``, the free-mode ``gmm`` and ``previous [..., 2]`` (broadcastable);
-        ``log_scale`` is added to the log widths (calibration)."""
-        return HoldMixture(F.log_softmax(self.logits(h), dim=-1), self.widths() + log_scale, previous, gmm)
+    def forward(self, h: torch.Tensor, gmm: GMM, previous: torch.Tensor) -> HoldMixture:
+        """``h [..., units]``, the free-mode ``gmm`` and ``previous [..., 2]`` (broadcastable)."""
+        return HoldMixture(F.log_softmax(self.logits(h), dim=-1), self.widths(), previous, gmm)

@@ -129,12 +129,7 @@ def sampled_metrics(model: CVAE, exemplars: ExemplarSet, index: np.ndarray, samp
     for start in range(0, len(index), batch_size):
         rows = slice(start, start + batch_size)
         batch = data.batch(torch.as_tensor(index[rows], device=device))
-        x = model.encode(batch)
-        p_z = model.joint_log_prob(model.p_z_logits(x)).exp()  # [B, Z]
-        z = torch.multinomial(p_z, draws, replacement=True, generator=generator).T  # [S, B]
-        actions = model.sample_actions(model.zx(model.latent_onehots[z], x), model.decoder_robot_inputs(batch),
-                                       batch.human_present_action, generator)
-        actions = model.actions_to_physical(actions.double())
+        actions = model.actions_to_physical(model.sample_futures(batch, draws, generator).double())
         positions = future_states(present[rows], actions)[..., :2]  # [S, B, 15, 2]
         true = truth[rows]
         # coverage: [2L, B, 3, 2] quantiles of the first `samples` draws at the horizons

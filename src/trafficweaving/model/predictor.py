@@ -73,6 +73,10 @@ class HumanPredictor:
     """
 
     def __init__(self, model: CVAE, precision: str = "float32", chunk_rows: int = 2048):
+        if model.config.robot_future != "recorded":
+            raise InputError(f"the model is conditioned on a {model.config.robot_future} of the robot's future (a driver "
+                             f"model), so it cannot tell candidate robot futures apart (expected a model conditioned on "
+                             f"recorded futures, e.g. default)")
         self.model = model.eval()
         weights = next(model.parameters())
         self.device, self.dtype = weights.device, weights.dtype

@@ -79,7 +79,7 @@ class BatchedRollout:
             if c.hold:
                 head = torch.cat([m.hold.logits.weight.T, head], dim=1)
                 self.head_bias = torch.cat([m.hold.logits.bias, self.head_bias])
-                self.hold_sigma = m.hold.widths().exp() * m.output_scale
+                self.hold_sigma = m.hold.widths().exp()
             self.param_offsets = (self.modes + m_count + torch.arange(5)).unsqueeze(0)
             self.output_scale = float(m.output_scale)
             self.w_head = head.contiguous().to(self.matmul_dtype)

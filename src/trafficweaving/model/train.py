@@ -64,6 +64,7 @@ class TrainConfig:
     hold_lr: float = 0.0  # constant learning rate of the hold variant's mode logits (0: the main learning rate)
     objective: str = "auto"  # "elbo": the paper's (needs q); "exact": -log Σ_z p(z|x) p(y|x,z); "auto": elbo if the model has q
     trainable: str = "all"  # which parts learn (TRAINABLE)
+    robot_future: str | None = None  # the model's conditioning (CVAEConfig.robot_future); None: the init's, or recorded
     schedule_start: int = 0  # step at which the KL-weight and temperature schedules start (fine-tuning)
     patience: int = 0  # early stopping: validations without improvement before stopping (0: off)
 
@@ -245,12 +246,14 @@ def check_standardisation_fits(model: CVAE, exemplars: ExemplarSet, where: str) 
                              f"{low:g}..{high:g}, i.e. data in the same units and conventions)")
 
 
-def initial_model(init: str | Path, variant: str | None) -> tuple[CVAE, dict]:
+def initial_model(init: str | Path, variant: str | None, robot_future: str | None = None) -> tuple[CVAE, dict]:
     """The model that fine-tuning ``init`` (a checkpoint or ``authors:PATH``) starts from, before any
     step, and its provenance: upgraded to ``cvae-hold`` with the hold modes switched off when
-    ``variant`` asks for it of a ``cvae`` model (:meth:`CVAE.with_hold_modes`), calibration reset
-    (fine-tuning changes the trained model itself; calibration is redone afterwards). Another
-    variant than ``variant`` (None: any) is refused."""
+    ``variant`` asks for it of a ``cvae`` model (:meth:`CVAE.with_hold_modes`), conditioned on
+    ``robot_future`` when given (:attr:`CVAEConfig.robot_future`; the weights are kept, the
+    training data then carries that future), calibration reset (fine-tuning changes the trained
+    model itself; calibration is redone afterwards). Another variant than ``variant`` (None: any)
+    is refused."""
     from .authors import load_authors_model
 
     if str(init).startswith("authors:"):
@@ -266,13 +269,17 @@ def initial_model(init: str | Path, variant: str | None) -> tuple[CVAE, dict]:
     elif variant is not None and model.config.name != variant:
         raise InputError(f"--init {init}: a {model.config.name} model, but --variant {variant} was asked "
                          f"(expected a checkpoint of the same variant, or a cvae model for --variant cvae-hold)")
+    if robot_future is not None and robot_future != model.config.robot_future:
+        provenance["robot_future"] = model.config.robot_future
+        model.config = replace(model.config, robot_future=robot_future)
     return model.set_calibration(1.0, 1.0), provenance
 
 
-def init_model(init: str | Path, variant: str | None, train_ex: ExemplarSet, objective: str = "auto") -> tuple[CVAE, dict]:
+def init_model(init: str | Path, variant: str | None, train_ex: ExemplarSet, objective: str = "auto",
+               robot_future: str | None = None) -> tuple[CVAE, dict]:
     """:func:`initial_model`, refusing a standardisation that does not fit the data or the paper's
     objective for a model without q."""
-    model, provenance = initial_model(init, variant)
+    model, provenance = initial_model(init, variant, robot_future)
     if objective == "elbo" and not model.config.has_q:
         raise InputError(f"--init {init}: the model has no recognition network q(z|x,y), which the paper's objective "
                          f"needs (expected --objective exact)")
@@ -311,12 +318,13 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
         extra.update({k: payload[k] for k in ("init", "recipe") if k in payload})
     elif init is not None:
         torch.manual_seed(tc.seed)
-        model, extra["init"] = init_model(init, variant, train_ex, tc.objective)
+        model, extra["init"] = init_model(init, variant, train_ex, tc.objective, tc.robot_future)
         model = model.to(device)
         tc = replace(tc, schedule_start=extra["init"]["step"])
     else:
         torch.manual_seed(tc.seed)
-        model = CVAE(CVAEConfig.variant(variant or "cvae")).to(device).set_standardisation(*statistics)
+        config = CVAEConfig.variant(variant or "cvae", robot_future=tc.robot_future or "recorded")
+        model = CVAE(config).to(device).set_standardisation(*statistics)
     if tc.objective == "auto":
         tc = replace(tc, objective="elbo" if model.config.has_q else "exact")
     train_data = train_ex.standardised(model)  # fine-tuning keeps the initial model's standardisation

@@ -16,9 +16,13 @@ from scipy.special import ndtri
 
 from ..scenario import DT, VALIDITY_REASONS, check_validity, study_initial_conditions
 from .drivers import DriverModel, DriverStyles, stratified_uniform
-from .humans import SyntheticDrivers
+from .humans import SyntheticDrivers, human_agent
 from .world import run_episodes
 from ..data.trials import TrialSet
+
+MIN_VALID_SHARE = 0.25
+"""Least share of valid trials :func:`generate_trials` accepts before giving up on the drivers."""
+
 
 @dataclass
 class GenerationReport:
@@ -61,8 +65,11 @@ def stratified_moods(ic_index: np.ndarray, rng: np.random.Generator) -> np.ndarr
 
 
 def simulate_trials(ic_index: np.ndarray, pair: np.ndarray, styles: DriverStyles, model: DriverModel,
-                    rng: np.random.Generator, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Simulate human–human trials on the world with both cars driven by :class:`SyntheticDrivers`.
+                    rng: np.random.Generator, progress: bool = False, drivers: str = "synthetic",
+                    device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+    """Simulate human–human trials on the world with both cars driven by :class:`SyntheticDrivers`
+    (or, with ``drivers`` another human spec of :func:`~trafficweaving.sim.humans.human_agent`,
+    e.g. ``model:driver``, by two such agents: self-play).
 
     ``ic_index``, ``pair``: ``[m]`` initial condition and driver pair of each trial; ``styles``:
     the traits of all drivers (driver ``2p`` is car A of pair ``p``, ``2p + 1`` car B).
@@ -71,16 +78,22 @@ def simulate_trials(ic_index: np.ndarray, pair: np.ndarray, styles: DriverStyles
     ics = study_initial_conditions()
     start = np.stack([ics[i].start_states() for i in ic_index])  # [m, 2, 6]
     moods = stratified_moods(ic_index, rng)
-    cars = [SyntheticDrivers(styles.take(2 * pair + k), model, mood=moods[:, k]) for k in (0, 1)]
+    if drivers == "synthetic":
+        cars = [SyntheticDrivers(styles.take(2 * pair + k), model, mood=moods[:, k]) for k in (0, 1)]
+    else:
+        cars = [human_agent(drivers, device) for _ in (0, 1)]
     return run_episodes(start, cars, rng, progress=progress).recorded()
 
 
 def generate_trials(n_trials: int, seed: int = 0, model: DriverModel | None = None, pairs: int = 19,
-                    progress: bool = False) -> tuple[TrialSet, GenerationReport]:
+                    progress: bool = False, drivers: str = "synthetic",
+                    device: str = "cpu") -> tuple[TrialSet, GenerationReport]:
     """Generate ``n_trials`` valid human–human trials (the paper's data: 1105 trials, 19 pairs).
 
     Trials are simulated in the protocol's order until ``n_trials`` pass the validity rules;
-    the report counts the rejected ones by reason. Deterministic for a given ``seed``.
+    the report counts the rejected ones by reason. Deterministic for a given ``seed``. Both cars
+    are driven by ``drivers`` (:func:`simulate_trials`); ValueError when fewer than one trial in
+    :data:`MIN_VALID_SHARE` of those simulated is valid (drivers that cannot do the task).
     """
     if n_trials < 1:
         raise ValueError(f"n_trials must be at least 1, got {n_trials}")
@@ -91,12 +104,15 @@ def generate_trials(n_trials: int, seed: int = 0, model: DriverModel | None = No
     styles = DriverStyles.sample(model, 2 * pairs, rng)
     planned = int(np.ceil(n_trials * 1.08)) + 18
     ic_index, pair = schedule(planned, pairs, rng)
-    states, lengths = simulate_trials(ic_index, pair, styles, model, rng, progress)
+    states, lengths = simulate_trials(ic_index, pair, styles, model, rng, progress, drivers, device)
     reason, cut = check_validity(states, lengths)
     while (reason == 0).sum() < n_trials:  # rare: top up with further rounds
+        if (reason == 0).mean() < MIN_VALID_SHARE:
+            raise ValueError(f"only {(reason == 0).sum()} of {len(reason)} trials simulated with drivers {drivers!r} are "
+                             f"valid (expected drivers that swap lanes safely in at least {MIN_VALID_SHARE:.0%} of trials)")
         more_ic, more_pair = schedule(planned, pairs, rng)
         more_pair = (more_pair + len(pair) // 18) % pairs
-        more_states, more_lengths = simulate_trials(more_ic, more_pair, styles, model, rng, progress)
+        more_states, more_lengths = simulate_trials(more_ic, more_pair, styles, model, rng, progress, drivers, device)
         more_reason, more_cut = check_validity(more_states, more_lengths)
         t_max = max(states.shape[2], more_states.shape[2])
         pad = lambda a: np.pad(a, ((0, 0), (0, 0), (0, t_max - a.shape[2]), (0, 0)), mode="edge")  # noqa: E731
@@ -112,10 +128,11 @@ def generate_trials(n_trials: int, seed: int = 0, model: DriverModel | None = No
         kept=n_trials,
         rejected={VALIDITY_REASONS[k]: int(c) for k, c in enumerate(counts) if k > 0},
     )
-    return _trial_set(states[valid], cut[valid], ic_index[valid], pair[valid], seed, pairs, model, report), report
+    trials = _trial_set(states[valid], cut[valid], ic_index[valid], pair[valid], seed, pairs, model, report, drivers)
+    return trials, report
 
 
-def _trial_set(states, lengths, ic_index, pair, seed, pairs, model, report) -> TrialSet:
+def _trial_set(states, lengths, ic_index, pair, seed, pairs, model, report, drivers) -> TrialSet:
     ics = study_initial_conditions()
     n, t_max = len(lengths), int(lengths.max())
     states = states[:, :, :t_max].copy()
@@ -132,8 +149,8 @@ def _trial_set(states, lengths, ic_index, pair, seed, pairs, model, report) -> T
         drivers=np.stack([2 * pair, 2 * pair + 1], axis=1).astype(np.int32),
         ic_dv=dv,
         ic_tco=np.where(dv == 0, np.nan, tco),
-        sources=np.full(n, "synthetic"),
+        sources=np.full(n, "synthetic" if drivers == "synthetic" else f"self-play {drivers}"),
         dt=DT,
-        metadata={"generator": {"seed": seed, "pairs": pairs,
+        metadata={"generator": {"seed": seed, "pairs": pairs, "drivers": drivers,
                                 "model": model.as_dict(), "report": report.as_dict()}},
     )

@@ -5,9 +5,13 @@
   dataset generator); :class:`SampledDrivers` draws the styles and moods at reset (closed loop).
 * :class:`ModelDriver`: a human model (the CVAE of paper §IV) as a driver: every 0.3 s it samples
   its next 3 accelerations, conditioned on its history and on the robot's future as it guesses
-  it (:func:`constant_acceleration_future`) or as the simulation tells it (``robot_future``).
+  it (:func:`constant_acceleration_future`) or as the simulation tells it (``robot_future``),
+  every episode of a batch in one model call.
 * :class:`ReplayDriver`: a recorded human (non-reactive), e.g. the authors' human-in-the-loop
   trials (``docs/real_humans.md``).
+* :class:`ConstantVelocityDriver`: keeps its velocity (no acceleration), the simplest baseline of
+  sim-agent benchmarks; ``rules`` puts the rule-based robot
+  (:class:`~trafficweaving.sim.robots.RuleBasedRobot`) in the human's seat.
 
 :func:`human_agent` builds one from a spec string (:data:`HUMAN_SPECS`).
 """
@@ -19,17 +23,22 @@ import torch
 
 from .. import validate
 from ..data.trials import TrialSet, load_trials
-from ..dynamics import future_states
+from ..dynamics import constant_acceleration_future, future_states
 from ..errors import InputError
 from ..model.checkpoint import load_model
 from ..model.cvae import CVAE
-from ..model.predictor import HumanPredictor
-from ..scenario import DT, HORIZON, MIN_HISTORY, lane_of
+from ..scenario import DT, HORIZON, MIN_HISTORY, colliding, lane_of, on_road
 from .drivers import DriverAgents, DriverModel, DriverStyles
+from .robots import RuleBasedRobot
 from .world import Agent
 
-HUMAN_SPECS = "synthetic, model:SPEC (SPEC: default, a checkpoint path or authors:PATH), replay:FILE or replay:FILE#K"
+HUMAN_SPECS = ("synthetic, model:SPEC (SPEC: driver, default, a checkpoint path or authors:PATH), replay:FILE or "
+               "replay:FILE#K, rules, constant-velocity")
 """The forms :func:`human_agent` accepts, as messages print them."""
+
+
+DRIVER_PROPOSALS = 8
+"""Futures a driver model samples per decision to find a safe one (:class:`ModelDriver`)."""
 
 
 class SyntheticDrivers:
@@ -63,23 +72,22 @@ class SampledDrivers(SyntheticDrivers):
         super().reset(rng, start, me)
 
 
-def constant_acceleration_future(present: np.ndarray) -> np.ndarray:
-    """The robot's future as the human guesses it: its states ``[..., 15, 6]`` at steps
-    t+1..t+15 when it holds its present acceleration, from its present state ``present [..., 6]``
-    (m, m/s, m/s²; trapezoid rule, :func:`~trafficweaving.dynamics.future_states`)."""
-    present = np.asarray(present, dtype=float)
-    return future_states(present, np.repeat(present[..., None, 4:6], HORIZON, axis=-2))
-
-
 class ModelDriver:
-    """A human model as a driver, batched over ``m`` episodes (one model call per episode).
+    """A human model as a driver, batched over ``m`` episodes.
 
-    Every :attr:`BLOCK` steps (0.3 s) it samples one 15-step future of its accelerations from
-    ``model`` (:class:`~trafficweaving.model.predictor.HumanPredictor`, ``precision`` as there),
-    conditioned on both cars' history and on the robot's future states, and then executes that
-    sample's first 3 accelerations. The first sample is drawn once ``MIN_HISTORY`` steps exist;
-    before that it holds its present acceleration. Each episode draws from its own
-    ``torch.Generator``, seeded at reset from the rng, so a run is reproducible from its seed.
+    Every :attr:`BLOCK` steps (0.3 s) it samples one 15-step future of its accelerations per
+    episode from ``model`` (:meth:`~trafficweaving.model.cvae.CVAE.sample_futures`, one batch for
+    all episodes), conditioned on both cars' history and on the robot's future states, and then
+    executes that sample's first 3 accelerations. The first sample is drawn once ``MIN_HISTORY``
+    steps exist; before that it holds its present acceleration. It draws from one
+    ``torch.Generator`` seeded at reset from the rng, so a run is reproducible from its seed.
+
+    ``proposals`` > 1 samples that many futures per episode and executes one whose 1.5 s of own
+    positions (from its present state) stay on the road and clear of the robot's future it is
+    conditioned on (the first such; the first sample when none is): the model's distribution
+    conditioned on a safe near future, as a driver who sees a collision coming picks another
+    action. Default: :data:`DRIVER_PROPOSALS` for a driver model (one conditioned on the guess,
+    ``CVAEConfig.robot_future == "guess"``), 1 (plain samples) for the paper's models.
 
     The robot's future: by default the guess :func:`constant_acceleration_future` (the robot holds
     its present acceleration). With ``robot_plan=True`` the simulation tells it the robot's plan:
@@ -91,19 +99,25 @@ class ModelDriver:
     BLOCK = 3
     """Steps executed from each sample (0.3 s)."""
 
-    def __init__(self, model: CVAE, robot_plan: bool = False, precision: str = "float32"):
-        self.predictor = HumanPredictor(model, precision)
+    def __init__(self, model: CVAE, robot_plan: bool = False, proposals: int | None = None):
+        if robot_plan and model.config.robot_future == "guess":
+            raise InputError("this model is conditioned on a guess of the robot's future, not on its plan "
+                             "(expected a model conditioned on recorded futures for robot_plan)")
+        self.model = model.eval()
+        driver = model.config.robot_future == "guess"
+        self.proposals = validate.integer("proposals", DRIVER_PROPOSALS if proposals is None and driver else proposals or 1, 1)
+        weights = next(model.parameters())
+        self.device, self.dtype = weights.device, weights.dtype
         self.robot_plan = robot_plan
         self.robot_future: np.ndarray | None = None
         self.me = 1
-        self.generators: list[torch.Generator] = []
+        self.generator = torch.Generator(device=self.device)
         self.block = np.zeros((0, self.BLOCK, 2))  # accelerations [m, 3, 2] of the current block
         self.left = 0  # accelerations of the block still to execute
 
     def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
         self.me = me
-        seeds = rng.integers(0, 2**63, size=len(start))
-        self.generators = [torch.Generator(device=self.predictor.device).manual_seed(int(s)) for s in seeds]
+        self.generator.manual_seed(int(rng.integers(0, 2**63)))
         self.robot_future, self.left = None, 0
 
     def conditioning(self, history: np.ndarray,
@@ -124,21 +138,41 @@ class ModelDriver:
         if self.left == 0:
             if self.robot_plan and robot_future is None:
                 raise RuntimeError("ModelDriver(robot_plan=True) needs robot_future [m, 15, 6] set before every act")
-            self.block = self._sample(*self.conditioning(history, robot_future if self.robot_plan else None))
+            self.block = self.sample(*self.conditioning(history, robot_future if self.robot_plan else None))
             self.left = self.BLOCK
         self.left -= 1
         return self.block[:, self.BLOCK - 1 - self.left].copy()
 
-    def _sample(self, histories: np.ndarray, robot_futures: np.ndarray) -> np.ndarray:
-        """The next block's accelerations ``[m, 3, 2]`` (m/s²), one model sample per episode."""
-        blocks = []
-        for history, future, generator in zip(histories, robot_futures, self.generators):
-            self.predictor.prepare(history, future[None])
-            blocks.append(self.predictor.sample([0], 1, generator)[0, 0, : self.BLOCK])
-        return torch.stack(blocks).double().cpu().numpy()
+    def sample(self, histories: np.ndarray, robot_futures: np.ndarray) -> np.ndarray:
+        """The next block's accelerations ``[m, 3, 2]`` (m/s²), one model sample per episode, for
+        robot-first ``histories [m, t+1, 2, 6]`` and ``robot_futures [m, 15, 6]``."""
+        tensor = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=self.dtype, device=self.device)  # noqa: E731
+        batch = self.model.situations(tensor(histories), tensor(robot_futures))
+        samples = self.model.actions_to_physical(self.model.sample_futures(batch, self.proposals, self.generator))
+        samples = samples.double().cpu().numpy()  # [K, m, 15, 2]
+        pick = np.zeros(len(histories), dtype=int)
+        if self.proposals > 1:
+            own = future_states(histories[:, -1, 1], samples)  # [K, m, 15, 6]
+            safe = on_road(own[..., 1]).all(-1) & ~colliding(own, robot_futures[None]).any(-1)  # [K, m]
+            pick = np.where(safe.any(0), safe.argmax(0), 0)
+        return samples[pick, np.arange(len(histories)), : self.BLOCK]
 
 
-class ReplayDriver:
+class ReplayedCar:
+    """Replays given accelerations ``accelerations [m, T, 2]`` (m/s², one row per episode): at
+    step t+1 those of step t+1, past the end the last ones. Non-reactive."""
+
+    def __init__(self, accelerations: np.ndarray):
+        self.accelerations = accelerations
+
+    def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
+        pass
+
+    def act(self, history: np.ndarray) -> np.ndarray:
+        return self.accelerations[:, min(history.shape[2], self.accelerations.shape[1] - 1)].copy()
+
+
+class ReplayDriver(ReplayedCar):
     """A recorded human, non-reactive: replays the accelerations ``[xdd, ydd]`` of the agent
     labelled ``human`` (the first one where both are) of a recorded trial, from its step 1 on;
     past the end of the recording it keeps its last recorded acceleration.
@@ -162,7 +196,7 @@ class ReplayDriver:
         self.human = np.argmax(self.trials.roles == "human", axis=1)  # [n] the replayed agent of each trial
         self.trial = None if trial is None else int(self.trial_ids[self._rows(trial)])
         self.played = np.zeros(0, dtype=self.trial_ids.dtype)
-        self.accelerations = np.zeros((0, 1, 2))
+        super().__init__(np.zeros((0, 1, 2)))
 
     def _rows(self, trial) -> np.ndarray:
         """Positions in :attr:`trials` of trial ids ``trial`` (an id or an array of ids)."""
@@ -193,8 +227,15 @@ class ReplayDriver:
         steps = np.minimum(np.arange(self.trials.states.shape[2]), self.trials.lengths[rows, None] - 1)  # [m, T]
         self.accelerations = self.trials.states[rows[:, None], self.human[rows, None], steps, 4:6]  # [m, T, 2]
 
+
+class ConstantVelocityDriver:
+    """Keeps its present velocity: zero acceleration in both directions, every step."""
+
+    def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
+        pass
+
     def act(self, history: np.ndarray) -> np.ndarray:
-        return self.accelerations[:, min(history.shape[2], self.accelerations.shape[1] - 1)].copy()
+        return np.zeros((len(history), 2))
 
 
 def _replay_target(target: str) -> tuple[str, int | None]:
@@ -214,6 +255,10 @@ def human_agent(spec: str, device: torch.device | str = "cpu", robot_plan: bool 
         raise InputError(f"robot_plan applies only to model:SPEC humans, got human {spec!r}")
     if spec == "synthetic":
         return SampledDrivers()
+    if spec == "rules":
+        return RuleBasedRobot()
+    if spec == "constant-velocity":
+        return ConstantVelocityDriver()
     if kind == "model" and target:
         return ModelDriver(load_model(target, device), robot_plan=robot_plan)
     if kind == "replay" and target:

@@ -59,6 +59,20 @@ class World:
         self.running = np.ones(m, dtype=bool)
         self.max_steps = max_steps
 
+    @classmethod
+    def from_history(cls, history: np.ndarray, max_steps: int = MAX_STEPS) -> "World":
+        """A world whose first ``k`` steps are given, ``history [m, 2, k, 6]`` (e.g. recorded), with
+        step ``k - 1`` as the present: agents take over from there."""
+        history = np.asarray(history, dtype=float)
+        if history.ndim != 4 or history.shape[2] < 1 or history.shape[2] > max_steps:
+            raise ValueError(f"history has shape {list(history.shape)} (expected [m, 2, k, 6] with 1 <= k <= {max_steps})")
+        world = cls(history[:, :, 0], max_steps)
+        if not np.isfinite(history).all():
+            raise ValueError("history has NaN or infinite states (expected finite recorded steps)")
+        world.states[:, :, : history.shape[2]] = history
+        world.t = history.shape[2] - 1
+        return world
+
     @property
     def history(self) -> np.ndarray:
         """Both cars' states at steps 0..t, ``[m, 2, t+1, 6]`` (a view)."""
@@ -90,15 +104,19 @@ class World:
 
 
 def run_episodes(start: np.ndarray, agents: Sequence[Agent], rng: np.random.Generator,
-                 max_steps: int = MAX_STEPS, progress: bool = False) -> World:
+                 max_steps: int = MAX_STEPS, progress: bool = False, until_max_steps: bool = False) -> World:
     """Run ``m`` episodes from ``start [m, 2, 6]`` with ``agents[k]`` driving car ``k``, until every
     episode has ended; returns the world. ``rng`` is handed to each agent's ``reset`` in car order
-    (agents draw from it in car order at every step, so a run is reproducible from its seed)."""
-    world = World(start, max_steps)
+    (agents draw from it in car order at every step, so a run is reproducible from its seed).
+    ``start`` may also be the first ``k`` steps ``[m, 2, k, 6]`` (e.g. recorded; the agents take
+    over at step ``k - 1``, :meth:`World.from_history`); ``until_max_steps`` runs every episode to
+    ``max_steps`` steps, ended or not (to compare with recordings step by step)."""
+    start = np.asarray(start, dtype=float)
+    world = World.from_history(start, max_steps) if start.ndim == 4 else World(start, max_steps)
     for me, agent in enumerate(agents):
         agent.reset(rng, world.states[:, :, 0], me)
-    steps = tqdm(total=max_steps - 1, desc="simulating", unit="step", disable=not progress, leave=False)
-    while not world.done:
+    steps = tqdm(total=max_steps - 1 - world.t, desc="simulating", unit="step", disable=not progress, leave=False)
+    while world.t + 1 < max_steps if until_max_steps else not world.done:
         history = world.history
         world.step(np.stack([agent.act(history) for agent in agents], axis=1))
         steps.update()

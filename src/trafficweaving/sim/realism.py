@@ -1,0 +1,299 @@
+"""Closed-loop realism of a human agent on recorded trials, after the Waymo Open Sim Agents
+Challenge (WOSAC; Montali et al., NeurIPS 2023): how likely is the real driving under the agent's
+own rollouts?
+
+For every recorded trial and every car in it labelled ``human``, the agent takes that car over
+after the first ``MIN_HISTORY`` recorded steps and drives it ``rollouts`` times to the end of the
+recording, against the other car replayed as recorded (it does not react). Each rollout and the
+recording give the values of the :data:`FEATURES`, per step (speed, accelerations, jerks, held
+controls, lateral position, distance and time to collision) or once per stream (when and where
+the lane change starts and crosses the divider, who passed first, collision, off road).
+
+A feature's likelihood is WOSAC's histogram likelihood: the rollouts' values in :data:`BINS` equal
+bins over the feature's range (values outside clipped to the end bins; "did not happen", e.g. no
+lane change, is a bin of its own), smoothed by :data:`PSEUDOCOUNT`, and the probability of the
+bin the real value falls in; per stream the exponent of its mean log over the stream's steps,
+then averaged over streams, so each feature scores in [0, 1]. Features average into three groups
+(``kinematic``, ``interactive``, ``road``) and the groups, weighted by :data:`GROUP_WEIGHTS`, into
+one ``realism`` score in [0, 1]. Rates over the rollouts (lane swap before the cutoff, off road,
+collision) are reported next to the recording's. docs/realism.md has the table of every agent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from tqdm import tqdm
+
+from ..data.behaviour import HOLD_TOLERANCE, lane_change_events
+from ..data.stats import swap_step
+from ..data.trials import TrialSet
+from ..scenario import (CAR_LENGTH, COLLISION_DY, CUTOFF_X, DT, MIN_HISTORY, ROAD_Y_MAX, ROAD_Y_MIN, across_divider,
+                        colliding, on_road, swapped_before_cutoff)
+from .humans import ReplayedCar
+from .world import Agent, run_episodes
+
+ROLLOUTS = 32
+"""Rollouts per stream (WOSAC's 32)."""
+BINS = 20
+"""Histogram bins over a continuous feature's range."""
+PSEUDOCOUNT = 0.1
+"""Additive smoothing of each bin's count, so that no real value has probability 0 (the WOSAC
+configurations use 0.1)."""
+TTC_CAP = 5.0
+"""Time to collision beyond this (or never: not closing, or not in the same lane) counts as it, s."""
+
+
+@dataclass(frozen=True)
+class Feature:
+    """A realism feature: its ``group``, the range ``[low, high]`` its bins cover (``bins`` of them;
+    2 for a yes/no feature, whose values are 0 and 1), whether it has a value at every step
+    (``per_step``) or once per stream, its unit and what it measures."""
+
+    group: str
+    low: float
+    high: float
+    per_step: bool
+    unit: str
+    what: str
+    bins: int = BINS
+
+
+def _flag(group: str, per_step: bool, what: str) -> Feature:
+    return Feature(group, -0.5, 1.5, per_step, "", what, bins=2)
+
+
+FEATURES = {
+    "speed": Feature("kinematic", 15.0, 40.0, True, "m/s", "longitudinal speed"),
+    "accel_x": Feature("kinematic", -5.0, 5.0, True, "m/s²", "longitudinal acceleration"),
+    "accel_y": Feature("kinematic", -3.0, 3.0, True, "m/s²", "lateral acceleration"),
+    "jerk_x": Feature("kinematic", -20.0, 20.0, True, "m/s³", "longitudinal jerk"),
+    "jerk_y": Feature("kinematic", -20.0, 20.0, True, "m/s³", "lateral jerk"),
+    "held_x": _flag("kinematic", True, "longitudinal control held (acceleration changed by less than HOLD_TOLERANCE)"),
+    "held_y": _flag("kinematic", True, "lateral control held"),
+    "distance": Feature("interactive", 0.0, 60.0, True, "m", "distance between the cars' centres"),
+    "time_to_collision": Feature("interactive", 0.0, TTC_CAP, True, "s",
+                                 "time to collision with the other car in the same lane (capped)"),
+    "passed_first": _flag("interactive", False, "ahead of the other car once both have swapped lanes"),
+    "collision": _flag("interactive", False, "collides with the other car"),
+    "lateral_position": Feature("road", ROAD_Y_MIN, ROAD_Y_MAX, True, "m", "lateral position"),
+    "lane_change_start": Feature("road", 0.0, 6.0, False, "s", "when the sideways motion of the lane change starts"),
+    "crossing_time": Feature("road", 0.0, 6.0, False, "s", "when the car crosses the lane divider"),
+    "crossing_x": Feature("road", -140.0, 20.0, False, "m", "where the car crosses the lane divider"),
+    "off_road": _flag("road", False, "leaves the road before the cutoff"),
+}
+"""The features by name. Times count from the stream's first step."""
+GROUP_WEIGHTS = {"kinematic": 0.3, "interactive": 0.4, "road": 0.3}
+"""Weights of the groups in ``realism`` (they sum to 1): interaction weighs most, as this task is
+about it. Fixed once published, so that scores stay comparable."""
+
+
+@dataclass
+class Streams:
+    """Recorded streams to roll out: ``states [n, 2, T, 6]`` with the other car first (car 0) and
+    the human car second (car 1), ``lengths [n]``, ``trial_ids [n]`` and the trials' start lanes
+    ``start_lanes [n, 2]`` in that order."""
+
+    states: np.ndarray
+    lengths: np.ndarray
+    trial_ids: np.ndarray
+    start_lanes: np.ndarray
+
+    @staticmethod
+    def of(trials: TrialSet) -> "Streams":
+        """One stream per agent labelled ``human`` in ``trials`` (both cars of a human–human trial)."""
+        trials.require_dt(DT, "the simulation")
+        rows, agents = np.nonzero(trials.roles == "human")
+        order = np.stack([1 - agents, agents], axis=1)  # [n, 2]: other car, human
+        return Streams(states=trials.states[rows[:, None], order], lengths=trials.lengths[rows].copy(),
+                       trial_ids=trials.trial_ids[rows], start_lanes=trials.start_lanes[rows[:, None], order])
+
+    def __len__(self) -> int:
+        return len(self.lengths)
+
+    def repeat(self, r: int) -> "Streams":
+        """Each stream ``r`` times in a row (stream-major)."""
+        return Streams(*(np.repeat(a, r, axis=0) for a in (self.states, self.lengths, self.trial_ids, self.start_lanes)))
+
+    def as_trials(self) -> TrialSet:
+        """As a :class:`TrialSet` (roles: the other car ``robot``, the human car ``human``)."""
+        n = len(self)
+        return TrialSet(states=self.states, lengths=self.lengths, trial_ids=self.trial_ids,
+                        roles=np.tile(np.array(["robot", "human"]), (n, 1)), start_lanes=self.start_lanes,
+                        drivers=np.full((n, 2), -1, dtype=np.int32), ic_dv=np.full(n, np.nan), ic_tco=np.full(n, np.nan),
+                        sources=np.full(n, "realism"))
+
+
+def roll_out(streams: Streams, agent: Agent, rollouts: int, rng: np.random.Generator,
+             progress: bool = False) -> Streams:
+    """``rollouts`` rollouts of every stream (stream-major, ``[n · rollouts]``): ``agent`` drives
+    the human car (car 1) from the stream's first ``MIN_HISTORY`` recorded steps to its recorded
+    length, the other car replays its recorded accelerations (its last one past the recording)."""
+    many = streams.repeat(rollouts)
+    t_max = int(streams.lengths.max())
+    steps = np.minimum(np.arange(t_max), many.lengths[:, None] - 1)  # [m, T]
+    other = ReplayedCar(many.states[np.arange(len(many))[:, None], 0, steps, 4:6])
+    world = run_episodes(many.states[:, :, :MIN_HISTORY], [other, agent], rng, max_steps=t_max, progress=progress,
+                         until_max_steps=True)
+    states = world.states.copy()
+    states[np.broadcast_to(np.arange(t_max)[None, None, :] >= many.lengths[:, None, None], states.shape[:3])] = np.nan
+    return Streams(states, many.lengths, many.trial_ids, many.start_lanes)
+
+
+def time_to_collision(states: np.ndarray) -> np.ndarray:
+    """Time until the human car (car 1 of ``states [..., 2, T, 6]``) and the other car touch
+    bumpers at their present speeds when they overlap laterally (``|Δy| < COLLISION_DY``) and close
+    in; :data:`TTC_CAP` otherwise (and at most that), s, ``[..., T]``."""
+    dx = states[..., 1, :, 0] - states[..., 0, :, 0]
+    gap = np.abs(dx) - CAR_LENGTH
+    closing = -np.sign(dx) * (states[..., 1, :, 2] - states[..., 0, :, 2])  # m/s, > 0: the gap shrinks
+    same_lane = np.abs(states[..., 1, :, 1] - states[..., 0, :, 1]) < COLLISION_DY
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ttc = np.where(same_lane & (closing > 0), np.maximum(gap, 0.0) / closing, TTC_CAP)
+    return np.minimum(ttc, TTC_CAP)
+
+
+def feature_values(streams: Streams) -> dict[str, np.ndarray]:
+    """Every feature's values for the human car of each stream: ``[n, T]`` per step (NaN outside
+    steps ``MIN_HISTORY .. length - 1``, the steps an agent drives), ``[n]`` once (NaN: did not
+    happen)."""
+    s = streams.states
+    n, _, t_max, _ = s.shape
+    human = s[:, 1]  # [n, T, 6]
+    steps = np.arange(t_max)
+    driven = (steps[None, :] >= MIN_HISTORY) & (steps[None, :] < streams.lengths[:, None])
+    change = np.diff(human[..., 4:6], axis=1, prepend=np.nan)  # [n, T, 2]
+    per_step = {
+        "speed": human[..., 2], "accel_x": human[..., 4], "accel_y": human[..., 5],
+        "jerk_x": change[..., 0] / DT, "jerk_y": change[..., 1] / DT,
+        "held_x": (np.abs(change[..., 0]) < HOLD_TOLERANCE).astype(float),
+        "held_y": (np.abs(change[..., 1]) < HOLD_TOLERANCE).astype(float),
+        "distance": np.hypot(human[..., 0] - s[:, 0, :, 0], human[..., 1] - s[:, 0, :, 1]),
+        "time_to_collision": time_to_collision(s), "lateral_position": human[..., 1],
+    }
+    values = {name: np.where(driven, v, np.nan) for name, v in per_step.items()}
+
+    trials = streams.as_trials()
+    events = lane_change_events(trials)  # one per stream, in order
+    values["lane_change_start"] = events.start * DT
+    values["crossing_time"] = events.crossing * DT
+    k = np.floor(np.nan_to_num(events.crossing)).astype(int)
+    frac = np.nan_to_num(events.crossing) - k
+    x = human[..., 0]
+    at_crossing = x[np.arange(n), k] + frac * (x[np.arange(n), np.minimum(k + 1, t_max - 1)] - x[np.arange(n), k])
+    values["crossing_x"] = np.where(np.isnan(events.crossing), np.nan, at_crossing)
+    both = swap_step(trials)
+    y_both = s[np.arange(n), :, both, 1]  # [n, 2]
+    swapped = across_divider(s[:, :, 0, 1], y_both).all(axis=1)
+    ahead = s[np.arange(n), 1, both, 0] > s[np.arange(n), 0, both, 0]
+    values["passed_first"] = np.where(swapped, ahead.astype(float), np.nan)
+    flags = rates(streams)
+    values["collision"], values["off_road"] = flags["collision"].astype(float), flags["off_road"].astype(float)
+    return values
+
+
+def rates(streams: Streams) -> dict[str, np.ndarray]:
+    """Per stream ``[n]`` (bool): the human car's ``swap`` (across the divider before the cutoff,
+    :func:`~trafficweaving.scenario.swapped_before_cutoff`), ``off_road`` (off the road at a
+    driven step before it reaches the cutoff) and ``collision`` (with the other car, at any step)."""
+    s, lengths = streams.states, streams.lengths
+    steps = np.arange(s.shape[2])[None, :]
+    recorded = steps < lengths[:, None]
+    before_cutoff = recorded & (steps >= MIN_HISTORY) & (np.fmax.accumulate(np.nan_to_num(s[:, 1, :, 0], nan=-np.inf), axis=1) < CUTOFF_X)
+    return {"swap": swapped_before_cutoff(s, lengths)[:, 1],
+            "off_road": (~on_road(s[:, 1, :, 1]) & before_cutoff).any(axis=1),
+            "collision": (colliding(s[:, 0], s[:, 1]) & recorded).any(axis=1)}
+
+
+def bin_index(values: np.ndarray, feature: Feature) -> np.ndarray:
+    """Each value's bin (0 .. ``bins - 1``; NaN: ``bins``, "did not happen"), same shape."""
+    scaled = (np.nan_to_num(values) - feature.low) / (feature.high - feature.low) * feature.bins
+    index = np.clip(np.floor(scaled), 0, feature.bins - 1).astype(int)
+    return np.where(np.isnan(values), feature.bins, index)
+
+
+def feature_likelihood(real: np.ndarray, rolled: np.ndarray, feature: Feature) -> np.ndarray:
+    """Per stream ``[n]``: the histogram likelihood (module docstring) of the real values ``real
+    [n, T]`` (per step; NaN steps are not scored) or ``[n]`` under the rollouts' ``rolled
+    [n, R, T]`` or ``[n, R]``."""
+    cells = feature.bins + 1
+    real_bin = bin_index(real, feature)  # [n(, T)]
+    counts = np.stack([(bin_index(rolled, feature) == b).sum(axis=1) for b in range(cells)], axis=-1)  # [n(, T), cells]
+    p = (counts + PSEUDOCOUNT) / (rolled.shape[1] + PSEUDOCOUNT * cells)
+    log_p = np.log(np.take_along_axis(p, real_bin[..., None], axis=-1)[..., 0])
+    if not feature.per_step:
+        return np.exp(log_p)
+    scored = ~np.isnan(real)
+    return np.exp(np.where(scored, log_p, 0.0).sum(axis=1) / np.maximum(scored.sum(axis=1), 1))
+
+
+@dataclass
+class Realism:
+    """Per-stream feature likelihoods ``likelihoods {name: [n]}`` and rates of the rollouts
+    ``rolled_rates {swap, off_road, collision: [n]}`` (fraction of each stream's rollouts) and of
+    the recordings ``real_rates`` (``[n]`` bool), for ``trial_ids [n]``, with ``rollouts`` each."""
+
+    likelihoods: dict[str, np.ndarray]
+    rolled_rates: dict[str, np.ndarray]
+    real_rates: dict[str, np.ndarray]
+    trial_ids: np.ndarray
+    rollouts: int
+
+    @staticmethod
+    def concatenate(parts: list["Realism"]) -> "Realism":
+        cat = lambda key: {k: np.concatenate([getattr(p, key)[k] for p in parts]) for k in getattr(parts[0], key)}  # noqa: E731
+        return Realism(cat("likelihoods"), cat("rolled_rates"), cat("real_rates"),
+                       np.concatenate([p.trial_ids for p in parts]), parts[0].rollouts)
+
+    def summary(self) -> dict:
+        """``realism``, ``groups``, ``features`` (means over streams), ``trials``, ``streams``,
+        ``rollouts``, the rollouts' ``swap_rate``, ``off_road_rate``, ``collision_rate`` and the
+        recordings' ``real_swap_rate``, ``real_off_road_rate``, ``real_collision_rate``."""
+        features = {name: float(v.mean()) for name, v in self.likelihoods.items()}
+        groups = {g: float(np.mean([features[f] for f, spec in FEATURES.items() if spec.group == g])) for g in GROUP_WEIGHTS}
+        out = {"realism": float(sum(w * groups[g] for g, w in GROUP_WEIGHTS.items())), "groups": groups,
+               "features": features, "trials": int(len(np.unique(self.trial_ids))), "streams": int(len(self.trial_ids)),
+               "rollouts": self.rollouts}
+        for key in ("swap", "off_road", "collision"):
+            out[f"{key}_rate"] = float(self.rolled_rates[key].mean())
+            out[f"real_{key}_rate"] = float(self.real_rates[key].mean())
+        return out
+
+
+def score_streams(streams: Streams, rolled: Streams, rollouts: int) -> Realism:
+    """The realism of ``rolled`` (:func:`roll_out` of ``streams``) against ``streams``."""
+    real, many = feature_values(streams), feature_values(rolled)
+    n = len(streams)
+    likelihoods = {name: feature_likelihood(real[name], many[name].reshape(n, rollouts, *many[name].shape[1:]), spec)
+                   for name, spec in FEATURES.items()}
+    rolled_rates = {k: v.reshape(n, rollouts).mean(axis=1) for k, v in rates(rolled).items()}
+    return Realism(likelihoods, rolled_rates, rates(streams), streams.trial_ids, rollouts)
+
+
+def realism(trials: TrialSet, agents: Callable[[np.ndarray], list[tuple[np.ndarray, Agent]]], rollouts: int = ROLLOUTS,
+            seed: int = 0, progress: bool = False, log: Callable[[str], None] = print) -> Realism:
+    """The realism of a human agent on ``trials``' human streams (module docstring).
+
+    ``agents(trial_ids)`` splits the trial ids ``[k]`` into groups, each with the agent that drives
+    them: one group for a fixed agent, one per fold for an agent trained on the trials
+    (out-of-fold). ``rollouts`` per stream; seeded from ``seed``."""
+    if not (isinstance(rollouts, int) and rollouts >= 2):
+        raise ValueError(f"rollouts must be an integer of at least 2, got {rollouts!r}")
+    streams = Streams.of(trials)
+    if len(streams) == 0:
+        raise ValueError("the trials have no agent labelled human (expected at least one to roll out)")
+    short = streams.lengths <= MIN_HISTORY
+    if short.any():
+        raise ValueError(f"trial {streams.trial_ids[short][0]} has {streams.lengths[short][0]} steps "
+                         f"(expected more than the {MIN_HISTORY} recorded steps a rollout starts from)")
+    rng = np.random.default_rng(seed)
+    parts = []
+    groups = agents(np.unique(streams.trial_ids))
+    for k, (ids, agent) in enumerate(tqdm(groups, desc="realism", unit="group", disable=not progress or len(groups) == 1)):
+        part = Streams(*(a[np.isin(streams.trial_ids, ids)] for a in
+                         (streams.states, streams.lengths, streams.trial_ids, streams.start_lanes)))
+        if len(part):
+            parts.append(score_streams(part, roll_out(part, agent, rollouts, rng, progress), rollouts))
+    return Realism.concatenate(parts)
