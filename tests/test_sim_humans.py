@@ -225,3 +225,24 @@ def test_replay_without_a_human(tmp_path):
     trials.write_parquet(path)
     with pytest.raises(InputError, match=f"{path}: .*expected a dataset with an agent labelled human"):
         human_agent(f"replay:{path}")
+
+
+def test_a_driver_model_executes_a_safe_sample_or_the_one_unsafe_latest():
+    driver = load_model("driver")
+    agent = ModelDriver(driver)
+    assert agent.proposals == 8 and ModelDriver(load_model("default")).proposals == 1
+    human = np.array([-100.0, LANE_CENTRE_Y["left"], 29.0, 0.0, 0.0, 0.0])
+    robot = np.array([0.0, LANE_CENTRE_Y["right"], 29.0, 0.0, 0.0, 0.0])
+    histories = np.repeat(np.stack([robot, human])[None, None], MIN_HISTORY, axis=1)  # [1, 5, 2, 6], robot first
+    futures = constant_acceleration_future(histories[:, -1, 0])
+
+    def proposing(*lateral):  # samples holding these lateral accelerations (m/s²) for 1.5 s
+        physical = torch.zeros(len(lateral), 1, HORIZON, 2, dtype=torch.float64)
+        physical[..., 1] = torch.tensor(lateral, dtype=torch.float64)[:, None, None]
+        return lambda batch, k, generator: driver.actions_to_standard(physical.to(torch.float32))
+
+    agent.proposals = 3
+    agent.model.sample_futures = proposing(5.0, 1.0, 0.0)  # off the road at once, off the road late, safe
+    np.testing.assert_allclose(agent.sample(histories, futures)[0, :, 1], 0.0, atol=1e-5)
+    agent.model.sample_futures = proposing(5.0, 1.0, 5.0)  # none safe: the one leaving the road latest
+    np.testing.assert_allclose(agent.sample(histories, futures)[0, :, 1], 1.0, atol=1e-5)

@@ -84,9 +84,9 @@ class ModelDriver:
 
     ``proposals`` > 1 samples that many futures per episode and executes one whose 1.5 s of own
     positions (from its present state) stay on the road and clear of the robot's future it is
-    conditioned on (the first such; the first sample when none is): the model's distribution
-    conditioned on a safe near future, as a driver who sees a collision coming picks another
-    action. Default: :data:`DRIVER_PROPOSALS` for a driver model (one conditioned on the guess,
+    conditioned on (the first such; when none is, the one whose first unsafe step comes latest):
+    the model's distribution conditioned on a safe near future, as a driver who sees a collision
+    coming picks another action. Default: :data:`DRIVER_PROPOSALS` for a driver model (one conditioned on the guess,
     ``CVAEConfig.robot_future == "guess"``), 1 (plain samples) for the paper's models.
 
     The robot's future: by default the guess :func:`constant_acceleration_future` (the robot holds
@@ -153,8 +153,9 @@ class ModelDriver:
         pick = np.zeros(len(histories), dtype=int)
         if self.proposals > 1:
             own = future_states(histories[:, -1, 1], samples)  # [K, m, 15, 6]
-            safe = on_road(own[..., 1]).all(-1) & ~colliding(own, robot_futures[None]).any(-1)  # [K, m]
-            pick = np.where(safe.any(0), safe.argmax(0), 0)
+            unsafe = ~on_road(own[..., 1]) | colliding(own, robot_futures[None])  # [K, m, 15]
+            first = np.where(unsafe.any(-1), unsafe.argmax(-1), HORIZON)  # first unsafe step; 15: none
+            pick = first.argmax(0)  # the first safe sample, else the one unsafe latest
         return samples[pick, np.arange(len(histories)), : self.BLOCK]
 
 
