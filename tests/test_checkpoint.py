@@ -68,7 +68,7 @@ def set_tensor(name: str, value):
 # ---------------------------------------------------------------- format and digest
 def test_round_trip_keeps_every_tensor_and_field(model, saved):
     loaded, payload = load_checkpoint(saved)
-    assert payload["version"] == VERSION == 3 and payload[HASH_FIELD] == tensor_digest(payload)
+    assert payload["version"] == VERSION == 4 and payload[HASH_FIELD] == tensor_digest(payload)
     for name, tensor in model.state_dict().items():
         assert torch.equal(loaded.state_dict()[name], tensor) and payload["state_dict"][name].dtype == tensor.dtype
     assert payload["step"] == 7 and payload["history"] == [(5, -1.5)] and payload["train_config"] == {"steps": 7}
@@ -147,7 +147,7 @@ def test_non_finite_weights_are_refused(saved):
     ("feature_std", torch.tensor([1.0, 1.0, 0.0, 1.0, 1.0, 1.0]), "positive standard deviations"),
     ("label_std", torch.tensor([-0.5, 1.0]), "positive standard deviations"),
     ("latent_temperature", torch.tensor(-1.0), "a positive temperature"),
-    ("output_scale", torch.tensor(0.0), "a positive scale"),
+    ("output_scale", torch.tensor([1.0, 0.0]), "a positive scale"),
 ])
 def test_non_positive_standard_deviations_and_calibration_are_refused(saved, name, value, expected):
     path = edited(saved, "bad.pt", set_tensor(name, value))
@@ -213,24 +213,28 @@ def test_malformed_resume_state_is_refused(saved):
           r"optimizer state covers \d+ parameters \(expected the model's \d+ trainable ones\)")
 
 
-def test_version_2_hold_models_keep_their_density(model, saved):
-    """Version 2's output scale also widened the hold modes; such a file loads with the scale folded
-    into its hold widths, so every hold and GMM width is what it was."""
-    def as_version_2(payload):
-        payload["version"] = 2
-        payload["state_dict"]["output_scale"] = torch.tensor(2.0)
-    loaded, _ = load_checkpoint(edited(saved, "v2.pt", as_version_2))
-    current, _ = load_checkpoint(edited(saved, "v3.pt", set_tensor("output_scale", torch.tensor(2.0))))
-    assert VERSION == 3 and loaded.output_scale.item() == current.output_scale.item() == 2.0
-    torch.testing.assert_close(loaded.hold.widths(), model.hold.widths() + np.log(2.0))
-    torch.testing.assert_close(current.hold.widths(), model.hold.widths())
+def test_older_versions_load_with_their_density(model, saved):
+    """Before version 4 the output scale was one number for both directions, and in version 2 it
+    also widened the hold modes: such files load with the scale in both directions and (version 2)
+    folded into the hold widths, so every hold and GMM width is what it was."""
+    def as_version(version):
+        def change(payload):
+            payload["version"] = version
+            payload["state_dict"]["output_scale"] = torch.tensor(2.0)
+        return change
+    v2, _ = load_checkpoint(edited(saved, "v2.pt", as_version(2)))
+    v3, _ = load_checkpoint(edited(saved, "v3.pt", as_version(3)))
+    assert VERSION == 4 and v2.output_scale.tolist() == v3.output_scale.tolist() == [2.0, 2.0]
+    torch.testing.assert_close(v2.hold.widths(), model.hold.widths() + np.log(2.0))
+    torch.testing.assert_close(v3.hold.widths(), model.hold.widths())
+    fails(edited(saved, "v4.pt", set_tensor("output_scale", torch.tensor(2.0))), r"output_scale has shape \[\] \(expected \[2\]\)")
 
 
 def test_version_1_and_missing_digests_are_refused(saved):
     payload = torch.load(saved, weights_only=True)
     old = {k: v for k, v in payload.items() if k != HASH_FIELD} | {"version": 1}
     torch.save(old, saved.with_name("v1.pt"))
-    fails(saved.with_name("v1.pt"), r"v1\.pt: checkpoint version 1 \(expected version 2 or 3, which carry a SHA-256")
+    fails(saved.with_name("v1.pt"), r"v1\.pt: checkpoint version 1 \(expected version 2, 3, 4, which carry a SHA-256")
     torch.save({**old, "version": 2}, saved.with_name("nohash.pt"))
     fails(saved.with_name("nohash.pt"), r"nohash\.pt: checkpoint has no valid tensor_sha256")
     torch.save({**payload, HASH_FIELD: "0" * 64}, saved.with_name("zero.pt"))
@@ -257,7 +261,7 @@ def test_save_recomputes_given_reserved_fields_and_export_keeps_a_valid_digest(m
     kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict")}
     save_checkpoint(tmp_path / "again.pt", model.set_calibration(2.0, 1.5), **kept)
     again, again_payload = load_checkpoint(tmp_path / "again.pt")
-    assert again.output_scale.item() == 1.5 and again_payload[HASH_FIELD] != payload[HASH_FIELD]
+    assert again.output_scale.tolist() == [1.5, 1.5] and again_payload[HASH_FIELD] != payload[HASH_FIELD]
     export_checkpoint(saved, tmp_path / "export.pt", data_command="trafficweaving generate")
     exported = read_checkpoint(tmp_path / "export.pt")
     assert "optimizer" not in exported and "rng" not in exported and exported["data_command"] == "trafficweaving generate"
@@ -271,7 +275,8 @@ def test_the_shipped_models_load_and_verify(name):
     assert payload["version"] == VERSION and payload[HASH_FIELD] == tensor_digest(payload)
     assert model.config.name == "cvae-hold" and all(v.dtype == torch.float32 for v in payload["state_dict"].values())
     if name != "driver":  # the driver model is not calibrated (docs/realism.md)
-        assert payload["state_dict"]["output_scale"].item() == pytest.approx(payload["calibration"]["output_scale"])
+        scale = payload["calibration"]["output_scale"]  # {"x", "y"}, or one number in files before version 4
+        assert model.output_scale.tolist() == pytest.approx(list(scale.values()) if isinstance(scale, dict) else [scale] * 2)
 
 
 def test_a_corrupted_model_fails_the_cli_in_one_line(saved, tmp_path, capsys):

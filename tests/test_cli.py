@@ -201,13 +201,15 @@ def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoin
                        "--out-folds", tmp_path / "cfolds", "--samples", 10, "--temperatures", "1,2", "--scales", "1,1.5,2",
                        "--json")
     report = json.loads(out)
-    assert code == 0 and len(report["grid"]) == 6 and {r["output_scale"] for r in report["grid"]} == {1, 1.5, 2}
-    chosen = (report["latent_temperature"], report["output_scale"])
+    grid = report["grid"]  # 2 x 3 settings, the scale in both directions, then per temperature each direction's own
+    assert code == 0 and 6 <= len(grid) <= 8 and {tuple(r["output_scale"].values()) for r in grid[:6]} == {(1, 1), (1.5, 1.5), (2, 2)}
+    assert all(r["latent_temperature"] in (1, 2) and set(r["output_scale"].values()) <= {1, 1.5, 2} for r in grid[6:])
+    scale = [report["output_scale"]["x"], report["output_scale"]["y"]]
     calibrated, payload = load_checkpoint(tmp_path / "c.pt")
-    assert (calibrated.latent_temperature.item(), calibrated.output_scale.item()) == pytest.approx(chosen)
+    assert calibrated.latent_temperature.item() == report["latent_temperature"] and calibrated.output_scale.tolist() == scale
     assert payload["calibration"]["nll_exact"] == report["nll_exact"]
     fold, fold_payload = load_checkpoint(tmp_path / "cfolds" / "fold_2.pt")
-    assert fold.output_scale.item() == pytest.approx(chosen[1]) and len(fold_payload["held_out_trials"]) == 3
+    assert fold.output_scale.tolist() == scale and len(fold_payload["held_out_trials"]) == 3
     # worker processes score the same grid (their models are private copies, not shared and overwritten)
     code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--out", tmp_path / "w.pt",
                        "--samples", 10, "--temperatures", "1,2", "--scales", "1,1.5,2", "--workers", 2, "--json")
@@ -237,12 +239,12 @@ def test_nested_recipe_search_chooses_candidate_and_calibration_on_inner_folds(c
     report = json.loads(out)
     assert code == 0 and len(report["candidates_nll_exact"]) == 2  # the recipe by likelihood, then its calibration
     best = min(range(2), key=lambda c: report["candidates_nll_exact"][c])
-    assert {(r["candidate"], r["output_scale"]) for r in report["grid"]} == {(best, 1), (best, 2)}
+    assert {(r["candidate"], r["output_scale"]["x"]) for r in report["grid"]} == {(best, 1), (best, 2)}
     nested = report["nested"]
     assert len(nested["folds"]) == 3 and all(f["candidate"] in (0, 1) for f in nested["folds"])
     assert nested["fold_mean_nll_exact"] == pytest.approx(sum(f["nll_exact"] for f in nested["folds"]) / 3)
     calibrated, payload = load_checkpoint(tmp_path / "c.pt")
-    assert calibrated.output_scale.item() == pytest.approx(report["output_scale"]) and payload["calibration"]["nested"] == nested
+    assert calibrated.output_scale.tolist() == list(report["output_scale"].values()) and payload["calibration"]["nested"] == nested
     code, _, err = run(capsys, "calibrate", "--data", data, "--folds", folders[0], "--model", model, "--model", model,
                        "--out", tmp_path / "x.pt")
     assert code == 2 and "2 --model for 1 --folds" in err
@@ -261,7 +263,7 @@ def test_default_model_is_shipped_trained_and_evaluates(capsys, tmp_path):
     assert len(cv["folds"]) == 5 and all(a < b for a, b in zip(cv["nested"]["folds"], cv["reference"]["folds"]))
     calibration = payload["calibration"]  # chosen out-of-fold: 90 % position intervals at 1.5 s cover 85-95 %
     assert all(0.85 <= c <= 0.95 for c in calibration["coverage_90"].values())
-    assert payload["state_dict"]["output_scale"].item() == pytest.approx(calibration["output_scale"])
+    assert payload["state_dict"]["output_scale"].tolist() == pytest.approx(list(calibration["output_scale"].values()))
     nested = calibration["nested"]  # every choice made on inner folds: the estimate for new trials
     assert all(f["nll_exact"] < ref for f, ref in zip(nested["folds"], cv["reference"]["folds"]))
     assert all(0.85 <= c <= 0.95 for c in nested["coverage_90"].values())

@@ -80,7 +80,7 @@ def test_coverage_on_data_sampled_from_the_model_itself_is_near_nominal(trials, 
     # the same model made overconfident (every output width halved) misses the recorded futures more often
     import copy
 
-    narrow = copy.deepcopy(model).set_calibration(float(model.latent_temperature), 0.5 * float(model.output_scale))
+    narrow = copy.deepcopy(model).set_calibration(float(model.latent_temperature), tuple((0.5 * model.output_scale).tolist()))
     real = sampled_metrics(narrow, exemplars, picks, samples=40, ade_samples=5, levels=(0.9,))
     assert real.covered.mean() < coverage[..., 1].mean() - 0.05
 

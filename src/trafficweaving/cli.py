@@ -281,7 +281,7 @@ def cmd_crossval(args) -> None:
 
 def cmd_calibrate(args) -> None:
     from .data.trials import load_trials
-    from .model.calibrate import calibrate
+    from .model.calibrate import calibrate, scale_of
     from .model.checkpoint import model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
     from .model.crossval import out_of_fold_models
 
@@ -300,7 +300,7 @@ def cmd_calibrate(args) -> None:
     result = calibrate(trials, args.folds, args.temperatures, args.scales, samples=args.samples, seed=args.seed,
                        log=_log(args), nested=args.nested, workers=args.workers)
     summary = result.summary()
-    candidate, temperature, scale = summary["candidate"], summary["latent_temperature"], summary["output_scale"]
+    candidate, temperature, scale = summary["candidate"], summary["latent_temperature"], scale_of(summary)
     path, payload = paths[candidate], payloads[candidate]
     model = model_from_checkpoint(payload, path).set_calibration(temperature, scale)
     kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict")}
@@ -310,7 +310,8 @@ def cmd_calibrate(args) -> None:
             save_checkpoint(out_folds / f"fold_{k + 1}.pt", fold_model.set_calibration(temperature, scale),
                             held_out_trials=held, calibration=summary)
     cov = summary["coverage_90"]
-    lines = [f"calibrated {args.model[candidate]} -> {out}: latent temperature {temperature:g}, output scale {scale:g} "
+    lines = [f"calibrated {args.model[candidate]} -> {out}: latent temperature {temperature:g}, output scale x "
+             f"{scale[0]:g}, y {scale[1]:g} "
              f"(out-of-fold NLL {summary['nll_exact']:.2f}, 90 % coverage at 1.5 s x {100 * cov['x']:.0f} %, "
              f"y {100 * cov['y']:.0f} %)"]
     if result.nested is not None:

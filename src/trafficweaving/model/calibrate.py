@@ -1,16 +1,21 @@
 """Calibration of a trained human model's predictive spread, chosen on out-of-fold predictions.
 
-Two scalars, buffers of :class:`~trafficweaving.model.cvae.CVAE` used by its density and by all
-sampling alike: the **latent temperature** (divides the p(z|x) logits: more weight on the less
-likely modes) and the **output scale** (multiplies every width of the per-step output, GMM
-components and hold modes). A model fine-tuned on few trials is too sure of itself on new drivers;
-these two knobs widen it without retraining.
+Buffers of :class:`~trafficweaving.model.cvae.CVAE` used by its density and by all sampling
+alike: the **latent temperature** (divides the p(z|x) logits: more weight on the less likely
+modes) and the **output scale**, one per direction (multiplies the widths of the per-step GMM's
+components in x and in y; not the hold modes', which measure how exactly a held control is held).
+A model fine-tuned on few trials is too sure of itself on new drivers; these knobs widen it
+without retraining.
 
 They are chosen on the out-of-fold models of ``trafficweaving crossval --out DIR`` (each trial
-predicted by the fold model that did not train on it): among the settings of a grid whose 90 %
-position intervals 1.5 s ahead cover between 85 % and 95 % of the real positions in both
-directions, the one with the best out-of-fold exact NLL (if none does, the one whose worse
-direction is closest to 90 %). The chosen setting is then applied to the model trained on every
+predicted by the fold model that did not train on it). A grid of temperatures and scales (the
+same in both directions) is scored; a direction's coverage and NLL depend on the temperature and
+that direction's scale alone, so for each temperature each direction's scale is chosen on its
+own (the best NLL of that direction among the scales whose 90 % position intervals 1.5 s ahead
+cover 85–95 % of the real positions in it; if none does, the closest to 90 %), and that
+per-direction setting is scored too. Among all scored settings, the one with the best out-of-fold
+exact NLL whose coverage is in the band in both directions is chosen (if none is, the one whose
+worse direction is closest to 90 %). The chosen setting is then applied to the model trained on every
 fold. Several cross-validation folders are candidate recipes: the recipe is chosen first, by
 likelihood (the best uncalibrated out-of-fold exact NLL), then its calibration by the rule above
 (coverage is a property the calibration fixes, not a reason to prefer a worse recipe).
@@ -44,10 +49,15 @@ COVERAGE_BAND = (0.85, 0.95)
 """Accepted coverage of the nominal 90 % position interval 1.5 s ahead, per direction."""
 
 
+def scale_of(row: dict) -> tuple[float, float]:
+    """The output scale ``(x, y)`` of a grid row."""
+    return row["output_scale"]["x"], row["output_scale"]["y"]
+
+
 @dataclass
 class Calibration:
     """``grid``: one dict per setting of the chosen candidate (``candidate`` index into the fold
-    folders, ``latent_temperature``, ``output_scale``, ``nll_exact``, ``nll_exact_by_direction``,
+    folders, ``latent_temperature``, ``output_scale`` ``{"x", "y"}``, ``nll_exact``, ``nll_exact_by_direction``,
     ``coverage_90`` ``{"x", "y"}`` at 1.5 s, ``min_ade_m``), out-of-fold; ``chosen``: its index;
     ``candidates_nll_exact``: every candidate's uncalibrated out-of-fold NLL; ``nested``: the
     nested estimate (:func:`calibrate_nested`) or None."""
@@ -62,17 +72,34 @@ class Calibration:
                 "coverage_band": list(COVERAGE_BAND), "nested": self.nested}
 
 
+def _in_band(coverage: float) -> bool:
+    return COVERAGE_BAND[0] <= coverage <= COVERAGE_BAND[1]
+
+
 def _choose(grid: list[dict]) -> int:
-    low, high = COVERAGE_BAND
-    inside = [k for k, g in enumerate(grid) if all(low <= c <= high for c in g["coverage_90"].values())]
+    """The row with the best exact NLL among those covering within the band in both directions,
+    else the one whose worse direction is closest to 90 %."""
+    inside = [k for k, g in enumerate(grid) if all(_in_band(c) for c in g["coverage_90"].values())]
     if inside:
         return min(inside, key=lambda k: grid[k]["nll_exact"])
     return min(range(len(grid)), key=lambda k: max(abs(c - 0.9) for c in grid[k]["coverage_90"].values()))
 
 
-def _scored(pairs: list, trials: TrialSet, temperature: float, scale: float, samples: int, seed: int) -> InstanceMetrics:
+def _direction_scale(rows: list[dict], direction: str) -> float:
+    """The scale for ``direction`` among ``rows`` of one temperature: the best NLL of that direction
+    among those covering within the band in it, else the coverage closest to 90 %."""
+    inside = [r for r in rows if _in_band(r["coverage_90"][direction])]
+    if inside:
+        best = min(inside, key=lambda r: r["nll_exact_by_direction"][direction])
+    else:
+        best = min(rows, key=lambda r: abs(r["coverage_90"][direction] - 0.9))
+    return best["output_scale"][direction]
+
+
+def _scored(pairs: list, trials: TrialSet, temperature: float, scale: tuple[float, float], samples: int,
+            seed: int) -> InstanceMetrics:
     """The instances of every ``(model, held-out trial ids)`` of ``pairs``, each scored by a copy of
-    its model calibrated with ``temperature`` and ``scale``. A copy: models sent to pool workers
+    its model calibrated with ``temperature`` and ``scale`` (x, y). A copy: models sent to pool workers
     arrive in memory shared between the workers (torch's multiprocessing pickler), so calibrating
     them in place would let concurrent grid points overwrite each other's setting."""
     parts = []
@@ -84,9 +111,10 @@ def _scored(pairs: list, trials: TrialSet, temperature: float, scale: float, sam
     return InstanceMetrics.concatenate(parts)
 
 
-def _row(candidate: int, temperature: float, scale: float, metrics: InstanceMetrics) -> dict:
+def _row(candidate: int, temperature: float, scale: tuple[float, float], metrics: InstanceMetrics) -> dict:
     s = metrics.summary()
-    return {"candidate": candidate, "latent_temperature": temperature, "output_scale": scale, "nll_exact": s["nll_exact"],
+    return {"candidate": candidate, "latent_temperature": temperature, "output_scale": dict(zip(("x", "y"), scale)),
+            "nll_exact": s["nll_exact"],
             "nll_exact_by_direction": s["nll_exact_by_direction"],
             "coverage_90": {d: s["coverage"][d]["1.5"]["90"] for d in ("x", "y")}, "min_ade_m": s["min_ade_m"]}
 
@@ -100,16 +128,26 @@ def _score_job(job: tuple) -> dict:
 
 def _grid(candidate: int, pairs: list, trials: TrialSet, temperatures, scales, samples: int, seed: int, log,
           pool: Executor | None) -> list[dict]:
-    """Every (temperature, scale) of one candidate, a list of ``(model, held-out ids)``, scored in
-    ``pool``'s processes (or here)."""
-    jobs = [(candidate, temperature, scale, pairs, trials, samples, seed) for temperature in temperatures for scale in scales]
-    grid = []
-    for row in (pool.map(_score_job, jobs) if pool is not None else map(_score_job, jobs)):
-        grid.append(row)
-        log(f"candidate {candidate + 1}, temperature {row['latent_temperature']:g}, scale {row['output_scale']:g}: "
-            f"NLL {row['nll_exact']:.2f}, 90 % coverage at 1.5 s x {100 * row['coverage_90']['x']:.0f} %, "
-            f"y {100 * row['coverage_90']['y']:.0f} %")
-    return grid
+    """The settings of one candidate (a list of ``(model, held-out ids)``) scored in ``pool``'s
+    processes (or here): every (temperature, scale) with the scale in both directions, then per
+    temperature the per-direction choice (:func:`_direction_scale`) where it differs."""
+    def scored(settings):
+        jobs = [(candidate, temperature, scale, pairs, trials, samples, seed) for temperature, scale in settings]
+        for row in (pool.map(_score_job, jobs) if pool is not None else map(_score_job, jobs)):
+            scale = row["output_scale"]
+            log(f"candidate {candidate + 1}, temperature {row['latent_temperature']:g}, scale x {scale['x']:g} "
+                f"y {scale['y']:g}: NLL {row['nll_exact']:.2f}, 90 % coverage at 1.5 s x "
+                f"{100 * row['coverage_90']['x']:.0f} %, y {100 * row['coverage_90']['y']:.0f} %")
+            yield row
+
+    grid = list(scored([(t, (s, s)) for t in temperatures for s in scales]))
+    per_direction = []
+    for t in temperatures:
+        rows = [r for r in grid if r["latent_temperature"] == t]
+        sx, sy = _direction_scale(rows, "x"), _direction_scale(rows, "y")
+        if sx != sy:
+            per_direction.append((t, (sx, sy)))
+    return grid + list(scored(per_direction))
 
 
 def _uncalibrated_nll(pairs: list, trials: TrialSet) -> float:
@@ -169,16 +207,16 @@ def calibrate_nested(trials: TrialSet, folders: list, temperatures=TEMPERATURES,
         inner = [out_of_fold_models(Path(f) / "nested" / f"fold_{k + 1}") for f in folders]
         scores, grid, chosen = _search(inner, trials, temperatures, scales, samples, seed, lambda _: None, pool)
         pick = grid[chosen]
-        c, temperature, scale = pick["candidate"], pick["latent_temperature"], pick["output_scale"]
+        c, temperature, scale = pick["candidate"], pick["latent_temperature"], scale_of(pick)
         metrics = _scored([(outer[c][k], held[k])], trials, temperature, scale, samples, seed)
         parts.append(metrics)
         row = _row(c, temperature, scale, metrics)
         per_fold.append({**row, "instances": len(metrics),
                          "inner": {"candidates_nll_exact": scores, **{k: pick[k] for k in ("nll_exact", "coverage_90")}}})
         log(f"outer fold {k + 1}: chose {'candidate ' + str(c + 1) + ', ' if len(folders) > 1 else ''}temperature "
-            f"{temperature:g}, scale {scale:g} on its inner folds; held-out NLL {row['nll_exact']:.2f} "
+            f"{temperature:g}, scale x {scale[0]:g} y {scale[1]:g} on its inner folds; held-out NLL {row['nll_exact']:.2f} "
             f"(x {row['nll_exact_by_direction']['x']:.2f}, y {row['nll_exact_by_direction']['y']:.2f}), 90 % coverage "
             f"at 1.5 s x {100 * row['coverage_90']['x']:.0f} %, y {100 * row['coverage_90']['y']:.0f} %")
-    total = _row(-1, float("nan"), float("nan"), InstanceMetrics.concatenate(parts))
+    total = _row(-1, float("nan"), (float("nan"), float("nan")), InstanceMetrics.concatenate(parts))
     return {k: total[k] for k in ("nll_exact", "nll_exact_by_direction", "coverage_90", "min_ade_m")} | {
         "fold_mean_nll_exact": float(np.mean([f["nll_exact"] for f in per_fold])), "folds": per_fold}

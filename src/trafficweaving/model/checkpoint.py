@@ -1,7 +1,7 @@
 """Model files: saving and loading checkpoints, and resolving ``--model`` specifications.
 
 A checkpoint is a ``torch.save`` dictionary readable with ``weights_only=True`` (no pickled code):
-``format``, ``version`` (3), ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
+``format``, ``version`` (4), ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
 and standardisation buffers), ``tensor_sha256`` (a SHA-256 of every tensor in the file, see
 :func:`tensor_digest`), ``data_fingerprint``, ``step``, ``history`` (validation NLL by step) and, in
 training checkpoints, ``train_config``, ``optimizer`` and ``rng`` for resuming.
@@ -32,11 +32,11 @@ from .cvae import CVAE, ROBOT_FUTURES, CVAEConfig
 from .gmm import HOLD_MIN_SIGMA, LOG_SIGMA_CLIP
 
 FORMAT = "trafficweaving-cvae"
-VERSION = 3
+VERSION = 4
 """2: adds ``tensor_sha256`` (version 1 files, without it, are refused); 3: the output scale no
-longer widens the hold modes (a version-2 file is read with its scale folded into its hold widths,
-the same density: :func:`upgrade_state`)."""
-READABLE_VERSIONS = (2, 3)
+longer widens the hold modes; 4: one output scale per direction. Older files are read with the
+same density (:func:`upgrade_state`)."""
+READABLE_VERSIONS = (2, 3, 4)
 HASH_FIELD = "tensor_sha256"
 SHIPPED_MODELS = {  # --model name: file in the package (docs/model.md, "The shipped models")
     "default": "default_cvae.pt",  # the authors' real-data model with hold modes, fine-tuned on the 30 real trials
@@ -303,8 +303,8 @@ def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
     if missing or extra:
         name = sorted(missing or extra)[0]
         raise InputError(f"{path}: checkpoint {'lacks' if missing else 'has unexpected'} tensor {name} (expected a {model.config.name} model)")
-    check_tensors(state, expected, path)
     state = upgrade_state(state, payload["version"])
+    check_tensors(state, expected, path)
     optimizer = payload.get("optimizer")
     if isinstance(optimizer, dict) and isinstance(optimizer.get("param_groups"), list):
         from .train import TRAINABLE  # here: train imports this module
@@ -321,13 +321,18 @@ def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
 
 
 def upgrade_state(state: dict, version: int) -> dict:
-    """A checked ``state_dict`` of a ``version`` checkpoint as this version's model reads it: in
-    version 2 the output scale also multiplied the hold widths, so a version-2 hold model gets
-    ``log s + log output_scale`` as its hold log-widths (the widths it had; its density is kept)."""
-    if version >= 3 or "hold.log_sigma" not in state:
+    """The ``state_dict`` of a ``version`` checkpoint as this version's model reads it, with the
+    same density: before version 4 the output scale was one number (both directions); in version 2
+    it also multiplied the hold widths, so a version-2 hold model gets ``log s + log output_scale``
+    as its hold log-widths (the widths it had)."""
+    scale = state.get("output_scale")
+    if version >= 4 or not isinstance(scale, torch.Tensor) or scale.dim() != 0:
         return state
-    log_sigma = state["hold.log_sigma"].clamp(math.log(HOLD_MIN_SIGMA), LOG_SIGMA_CLIP)
-    return state | {"hold.log_sigma": log_sigma + torch.log(state["output_scale"])}
+    upgraded = state | {"output_scale": scale.expand(2).clone()}
+    if version == 2 and "hold.log_sigma" in state and scale.is_floating_point() and scale > 0:  # else refused below
+        log_sigma = state["hold.log_sigma"].clamp(math.log(HOLD_MIN_SIGMA), LOG_SIGMA_CLIP)
+        upgraded["hold.log_sigma"] = log_sigma + torch.log(scale)
+    return upgraded
 
 
 def _read(path: str | Path) -> tuple[dict, CVAE]:
@@ -345,7 +350,7 @@ def _read(path: str | Path) -> tuple[dict, CVAE]:
         raise InputError(f"{path}: not a trafficweaving model checkpoint (expected {EXPECTED})")
     version = payload.get("version")
     if version not in READABLE_VERSIONS or isinstance(version, bool):
-        raise InputError(f"{path}: checkpoint version {_short(version)} (expected version 2 or {VERSION}, which carry "
+        raise InputError(f"{path}: checkpoint version {_short(version)} (expected version {', '.join(map(str, READABLE_VERSIONS))}, which carry "
                          f"a SHA-256 of their tensors; version 1 files are no longer read)")
     stored = payload.get(HASH_FIELD)
     if not (isinstance(stored, str) and re.fullmatch(r"[0-9a-f]{64}", stored)):

@@ -152,7 +152,7 @@ class CVAE(nn.Module):
             self.register_buffer(name, torch.zeros(size) if "mean" in name else torch.ones(size))
         # calibration, set after training (model/calibrate.py); 1 and 1 leave the trained model as it is
         self.register_buffer("latent_temperature", torch.tensor(1.0))  # divides the p(z|x) logits
-        self.register_buffer("output_scale", torch.tensor(1.0))  # multiplies every GMM width (not the hold modes')
+        self.register_buffer("output_scale", torch.ones(2))  # multiplies the GMM widths in x, y (not the hold modes')
 
     def with_hold_modes(self) -> "CVAE":
         """A ``cvae-hold`` copy of this paper-variant model (``cvae``): every paper part (encoders,
@@ -195,14 +195,16 @@ class CVAE(nn.Module):
             self.label_std.copy_(self.feature_std[ACCEL])
         return self
 
-    def set_calibration(self, latent_temperature: float, output_scale: float) -> "CVAE":
-        """Set the calibration buffers in place (both positive; 1 and 1: the trained model as it
-        is; chosen by :mod:`trafficweaving.model.calibrate`); returns the model."""
-        if not (latent_temperature > 0 and output_scale > 0):
+    def set_calibration(self, latent_temperature: float, output_scale: float | tuple[float, float]) -> "CVAE":
+        """Set the calibration buffers in place: the latent temperature and the output scale of the
+        GMM widths, one for both directions or ``(x, y)`` (all positive; 1 and 1: the trained model
+        as it is; chosen by :mod:`trafficweaving.model.calibrate`); returns the model."""
+        scale = torch.as_tensor(output_scale, dtype=torch.float64).expand(2)
+        if not (latent_temperature > 0 and bool((scale > 0).all())):
             raise ValueError(f"calibration must be positive, got temperature {latent_temperature}, scale {output_scale}")
         with torch.no_grad():
             self.latent_temperature.fill_(latent_temperature)
-            self.output_scale.fill_(output_scale)
+            self.output_scale.copy_(scale)
         return self
 
     # -- encoders ---------------------------------------------------------------------------

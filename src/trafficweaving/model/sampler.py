@@ -81,7 +81,7 @@ class BatchedRollout:
                 self.head_bias = torch.cat([m.hold.logits.bias, self.head_bias])
                 self.hold_sigma = m.hold.widths().exp()
             self.param_offsets = (self.modes + m_count + torch.arange(5)).unsqueeze(0)
-            self.output_scale = float(m.output_scale)
+            self.output_scale = m.output_scale.detach().clone()  # [2]: x, y
             self.w_head = head.contiguous().to(self.matmul_dtype)
             self.head_bias = self.head_bias.to(self.matmul_dtype)
             self.w_step = self.w_step.to(self.matmul_dtype)
