@@ -194,8 +194,9 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
     if len(build_exemplars(trials)) == 0:
         raise InputError(f"the data has no prediction instances ({NO_EXEMPLARS}; expected agents with role 'human')")
     parts = fold_assignment(len(trials), folds, seed)
-    for k, part in enumerate(parts):
-        if len(build_exemplars(trials.subset(part))) == 0:
+    held_out = [build_exemplars(trials.subset(p)) for p in parts]
+    for k, exemplars in enumerate(held_out):
+        if len(exemplars) == 0:
             raise InputError(f"fold {k + 1} has no prediction instances (expected every fold to hold human agents "
                              f"in trials of at least {MIN_TRIAL_STEPS} steps; try fewer folds)")
     tc = replace(tc, validation_exemplars=10**9, patience=0)
@@ -227,10 +228,10 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
     ref = ref_dir = None
     if reference is not None:
         ref_model = load_model(reference, device)
-        scored = [evaluate(ref_model, build_exemplars(trials.subset(p))) for p in parts]
+        scored = [evaluate(ref_model, exemplars) for exemplars in held_out]
         ref = np.array([float(e.nll_exact.mean()) for e in scored])
         ref_dir = np.array([e.nll_direction.mean(0) for e in scored])
-    instances = np.array([len(build_exemplars(trials.subset(p))) for p in parts])
+    instances = np.array([len(exemplars) for exemplars in held_out])
     result = CrossvalResult(parts, steps, curves, instances, ref, reference, beat_reference, directions, ref_dir, inner)
     if out is not None:
         _save_fold_models(Path(out), result, fits, trials)

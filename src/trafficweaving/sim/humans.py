@@ -86,8 +86,9 @@ class ModelDriver:
     positions (from its present state) stay on the road and clear of the robot's future it is
     conditioned on (the first such; when none is, the one whose first unsafe step comes latest):
     the model's distribution conditioned on a safe near future, as a driver who sees a collision
-    coming picks another action. Default: :data:`DRIVER_PROPOSALS` for a driver model (one conditioned on the guess,
-    ``CVAEConfig.robot_future == "guess"``), 1 (plain samples) for the paper's models.
+    coming picks another action. Default: :data:`DRIVER_PROPOSALS` for a driver model (one
+    conditioned on the guess, ``CVAEConfig.robot_future == "guess"``), 1 (plain samples) for the
+    paper's models.
 
     The robot's future: by default the guess :func:`constant_acceleration_future` (the robot holds
     its present acceleration). With ``robot_plan=True`` the simulation tells it the robot's plan:
@@ -104,8 +105,9 @@ class ModelDriver:
             raise InputError("this model is conditioned on a guess of the robot's future, not on its plan "
                              "(expected a model conditioned on recorded futures for robot_plan)")
         self.model = model.eval()
-        driver = model.config.robot_future == "guess"
-        self.proposals = validate.integer("proposals", DRIVER_PROPOSALS if proposals is None and driver else proposals or 1, 1)
+        if proposals is None:
+            proposals = DRIVER_PROPOSALS if model.config.robot_future == "guess" else 1
+        self.proposals = validate.integer("proposals", proposals, 1)
         weights = next(model.parameters())
         self.device, self.dtype = weights.device, weights.dtype
         self.robot_plan = robot_plan

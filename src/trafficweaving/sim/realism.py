@@ -30,6 +30,7 @@ from tqdm import tqdm
 from ..data.behaviour import HOLD_TOLERANCE, lane_change_events
 from ..data.stats import swap_step
 from ..data.trials import TrialSet
+from ..model.exemplars import build_exemplars
 from ..scenario import (CAR_LENGTH, COLLISION_DY, CUTOFF_X, DT, MIN_HISTORY, ROAD_Y_MAX, ROAD_Y_MIN, across_divider,
                         colliding, on_road, swapped_before_cutoff)
 from .humans import ReplayedCar
@@ -103,11 +104,13 @@ class Streams:
 
     @staticmethod
     def of(trials: TrialSet) -> "Streams":
-        """One stream per agent labelled ``human`` in ``trials`` (both cars of a human–human trial)."""
+        """One stream per agent labelled ``human`` in ``trials`` (both cars of a human–human trial),
+        the human model's streams (:func:`~trafficweaving.model.exemplars.build_exemplars`)."""
         trials.require_dt(DT, "the simulation")
-        rows, agents = np.nonzero(trials.roles == "human")
+        exemplars = build_exemplars(trials)
+        rows, agents = exemplars.stream_trial, exemplars.stream_agent
         order = np.stack([1 - agents, agents], axis=1)  # [n, 2]: other car, human
-        return Streams(states=trials.states[rows[:, None], order], lengths=trials.lengths[rows].copy(),
+        return Streams(states=exemplars.streams.transpose(0, 2, 1, 3), lengths=exemplars.lengths.copy(),
                        trial_ids=trials.trial_ids[rows], start_lanes=trials.start_lanes[rows[:, None], order])
 
     def __len__(self) -> int:
@@ -155,10 +158,10 @@ def time_to_collision(states: np.ndarray) -> np.ndarray:
     return np.minimum(ttc, TTC_CAP)
 
 
-def feature_values(streams: Streams) -> dict[str, np.ndarray]:
+def feature_values(streams: Streams, flags: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Every feature's values for the human car of each stream: ``[n, T]`` per step (NaN outside
     steps ``MIN_HISTORY .. length - 1``, the steps an agent drives), ``[n]`` once (NaN: did not
-    happen)."""
+    happen); ``flags``: the streams' :func:`rates`."""
     s = streams.states
     n, _, t_max, _ = s.shape
     human = s[:, 1]  # [n, T, 6]
@@ -189,7 +192,6 @@ def feature_values(streams: Streams) -> dict[str, np.ndarray]:
     swapped = across_divider(s[:, :, 0, 1], y_both).all(axis=1)
     ahead = s[np.arange(n), 1, both, 0] > s[np.arange(n), 0, both, 0]
     values["passed_first"] = np.where(swapped, ahead.astype(float), np.nan)
-    flags = rates(streams)
     values["collision"], values["off_road"] = flags["collision"].astype(float), flags["off_road"].astype(float)
     return values
 
@@ -264,12 +266,13 @@ class Realism:
 
 def score_streams(streams: Streams, rolled: Streams, rollouts: int) -> Realism:
     """The realism of ``rolled`` (:func:`roll_out` of ``streams``) against ``streams``."""
-    real, many = feature_values(streams), feature_values(rolled)
+    real_flags, rolled_flags = rates(streams), rates(rolled)
+    real, many = feature_values(streams, real_flags), feature_values(rolled, rolled_flags)
     n = len(streams)
     likelihoods = {name: feature_likelihood(real[name], many[name].reshape(n, rollouts, *many[name].shape[1:]), spec)
                    for name, spec in FEATURES.items()}
-    rolled_rates = {k: v.reshape(n, rollouts).mean(axis=1) for k, v in rates(rolled).items()}
-    return Realism(likelihoods, rolled_rates, rates(streams), streams.trial_ids, rollouts)
+    rolled_rates = {k: v.reshape(n, rollouts).mean(axis=1) for k, v in rolled_flags.items()}
+    return Realism(likelihoods, rolled_rates, real_flags, streams.trial_ids, rollouts)
 
 
 def realism(trials: TrialSet, agents: Callable[[np.ndarray], list[tuple[np.ndarray, Agent]]], rollouts: int = ROLLOUTS,
