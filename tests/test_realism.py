@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from trafficweaving.cli import main
-from trafficweaving.scenario import MIN_HISTORY
+from trafficweaving.scenario import CUTOFF_X, MIN_HISTORY
 from trafficweaving.sim.generate import generate_trials
 from trafficweaving.sim.humans import ReplayedCar, human_agent
-from trafficweaving.sim.realism import (FEATURES, GROUP_WEIGHTS, PSEUDOCOUNT, Feature, Streams, feature_likelihood,
+from trafficweaving.sim.realism import (EXTENSION, FEATURES, GROUP_WEIGHTS, PSEUDOCOUNT, Feature, Streams, feature_likelihood,
                                         realism, roll_out)
 
 
@@ -54,22 +54,34 @@ def test_the_recording_replayed_scores_as_high_as_the_histograms_allow(trials):
     for name, value in summary["features"].items():
         assert value >= (best if FEATURES[name].bins == 20 else rollouts / (rollouts + PSEUDOCOUNT * 3)) - 1e-9, name
     assert summary["realism"] >= best - 1e-9 and set(summary["groups"]) == set(GROUP_WEIGHTS)
-    for key in ("swap", "off_road", "collision"):
+    for key in ("off_road", "collision"):
         assert summary[f"{key}_rate"] == summary[f"real_{key}_rate"]
+    # a swap is judged where the car reaches the cutoff: past a recording that stops short of it
+    # the rollout goes on, so only there may the replay swap where the recording had not yet
+    reached = (streams.states[:, 1, :, 0] >= CUTOFF_X).any(axis=1)
+    rolled_swap, real_swap = result.rolled_rates["swap"], result.real_rates["swap"]
+    np.testing.assert_array_equal(rolled_swap[reached], real_swap[reached])
+    assert (rolled_swap >= real_swap).all() and (~reached).any()
 
 
-def test_rollouts_start_from_the_recorded_prefix_and_run_to_the_recorded_length(trials):
+def test_rollouts_start_from_the_recorded_prefix_and_run_to_the_recorded_length_or_on_to_the_cutoff(trials):
     streams = Streams.of(trials)
     rolled = roll_out(streams, human_agent("constant-velocity"), 3, np.random.default_rng(0))
     assert len(rolled) == 3 * len(streams)
     np.testing.assert_array_equal(rolled.states[::3, :, :MIN_HISTORY], streams.states[:, :, :MIN_HISTORY])
-    np.testing.assert_array_equal(rolled.lengths[::3], streams.lengths)
+    np.testing.assert_array_equal(rolled.recorded[::3], streams.lengths)
+    x_end = rolled.states[np.arange(len(rolled)), 1, rolled.lengths - 1, 0]
+    extended = rolled.lengths > rolled.recorded
+    assert extended.any() and (rolled.lengths <= rolled.recorded + EXTENSION).all()
+    assert ((x_end >= CUTOFF_X) | (rolled.lengths == rolled.recorded + EXTENSION))[extended].all()
+    before = rolled.states[np.arange(len(rolled)), 1, rolled.lengths - 2, 0]
+    assert (before[extended] < CUTOFF_X).all()  # it stops at the first step at the cutoff
     past = np.arange(rolled.states.shape[2])[None, :] >= rolled.lengths[:, None]
     assert np.isnan(rolled.states[:, :, :, 0][np.broadcast_to(past[:, None], rolled.states.shape[:3])]).all()
     driven = rolled.states[0, 1, MIN_HISTORY:rolled.lengths[0]]
     np.testing.assert_array_equal(driven[:, 4:6], 0.0)  # constant velocity: no acceleration
     # the other car replays its recording
-    np.testing.assert_allclose(rolled.states[0, 0, :rolled.lengths[0]], streams.states[0, 0, :streams.lengths[0]], atol=1e-9)
+    np.testing.assert_allclose(rolled.states[0, 0, :rolled.recorded[0]], streams.states[0, 0, :streams.lengths[0]], atol=1e-9)
 
 
 def test_the_drivers_that_generated_the_data_are_more_realistic_than_constant_velocity(trials):

@@ -11,7 +11,7 @@ from trafficweaving.data.trials import load_trials
 from trafficweaving.dynamics import constant_acceleration_future, future_states
 from trafficweaving.errors import InputError
 from trafficweaving.model.checkpoint import load_model
-from trafficweaving.scenario import DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y, MIN_HISTORY, study_initial_conditions
+from trafficweaving.scenario import CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y, MIN_HISTORY, study_initial_conditions
 from trafficweaving.sim.drivers import DriverModel, DriverStyles
 from trafficweaving.sim.generate import generate_trials
 from trafficweaving.sim.humans import ModelDriver, ReplayDriver, SampledDrivers, SyntheticDrivers, human_agent
@@ -227,22 +227,74 @@ def test_replay_without_a_human(tmp_path):
         human_agent(f"replay:{path}")
 
 
-def test_a_driver_model_executes_a_safe_sample_or_the_one_unsafe_latest():
-    driver = load_model("driver")
-    agent = ModelDriver(driver)
-    assert agent.proposals == 8 and ModelDriver(load_model("default")).proposals == 1
+def _proposing(driver, *accelerations):
+    """A stand-in for ``driver.sample_futures``: samples holding these ``(xdd, ydd)`` (m/s²) for 1.5 s."""
+    physical = torch.zeros(len(accelerations), 1, HORIZON, 2, dtype=torch.float64)
+    physical[:] = torch.tensor(accelerations, dtype=torch.float64)[:, None, None, :]
+    return lambda batch, k, generator: driver.actions_to_standard(physical.to(torch.float32))
+
+
+def _driver_situation():
+    """A human car 100 m behind the robot in the other lane, both at 29 m/s: robot-first histories
+    ``[1, 5, 2, 6]`` and the robot's guessed future."""
     human = np.array([-100.0, LANE_CENTRE_Y["left"], 29.0, 0.0, 0.0, 0.0])
     robot = np.array([0.0, LANE_CENTRE_Y["right"], 29.0, 0.0, 0.0, 0.0])
-    histories = np.repeat(np.stack([robot, human])[None, None], MIN_HISTORY, axis=1)  # [1, 5, 2, 6], robot first
-    futures = constant_acceleration_future(histories[:, -1, 0])
+    histories = np.repeat(np.stack([robot, human])[None, None], MIN_HISTORY, axis=1)
+    return histories, constant_acceleration_future(histories[:, -1, 0])
 
-    def proposing(*lateral):  # samples holding these lateral accelerations (m/s²) for 1.5 s
-        physical = torch.zeros(len(lateral), 1, HORIZON, 2, dtype=torch.float64)
-        physical[..., 1] = torch.tensor(lateral, dtype=torch.float64)[:, None, None]
-        return lambda batch, k, generator: driver.actions_to_standard(physical.to(torch.float32))
+
+def test_a_driver_model_executes_a_safe_sample_or_the_one_unsafe_latest():
+    driver = load_model("driver")
+    agent = ModelDriver(driver, anticipation=0)
+    assert ModelDriver(driver).proposals == 8 and ModelDriver(load_model("default")).proposals == 1
+    histories, futures = _driver_situation()
+    proposing = lambda *lateral: _proposing(driver, *((0.0, a) for a in lateral))  # noqa: E731
 
     agent.proposals = 3
     agent.model.sample_futures = proposing(5.0, 1.0, 0.0)  # off the road at once, off the road late, safe
     np.testing.assert_allclose(agent.sample(histories, futures)[0, :, 1], 0.0, atol=1e-5)
     agent.model.sample_futures = proposing(5.0, 1.0, 5.0)  # none safe: the one leaving the road latest
     np.testing.assert_allclose(agent.sample(histories, futures)[0, :, 1], 1.0, atol=1e-5)
+
+
+def test_a_driver_model_judges_its_proposals_by_the_other_cars_predicted_futures():
+    driver = load_model("driver")
+    agent = ModelDriver(driver)
+    assert agent.anticipation == 8 and ModelDriver(load_model("default")).anticipation == 0
+    histories, futures = _driver_situation()
+    agent.proposals = 2
+    agent.model.sample_futures = _proposing(driver, (0.0, 0.0), (-6.0, 0.0))  # keep the speed; brake
+    keep = future_states(histories[0, -1, 1], np.zeros((HORIZON, 2)))  # [15, 6]
+    predicted = np.repeat(futures[None], 2, axis=0)  # [2, 1, 15, 6]: the robot as guessed ...
+    predicted[1, 0, 12:] = keep[12:]  # ... or, in one of two predictions, where the human keeps its speed in 1.3 s
+    agent.others = lambda h: predicted
+    agent.reset(np.random.default_rng(0), histories[:, 0], me=1)
+    np.testing.assert_allclose(agent.sample(histories, futures)[0, :, 0], -6.0, atol=1e-5)  # braking is clear of both
+    agent.anticipation = 0  # the guess alone: keeping the speed is safe
+    np.testing.assert_allclose(agent.sample(histories, futures)[0, :, 0], 0.0, atol=1e-5)
+
+
+def test_a_driver_model_predicts_the_other_car_with_the_seats_swapped():
+    agent = ModelDriver(load_model("driver"))
+    histories, _ = _driver_situation()
+    agent.reset(np.random.default_rng(0), histories[:, 0], me=1)
+    others = agent.others(histories)
+    assert others.shape == (8, 1, HORIZON, 6) and np.isfinite(others).all()
+    np.testing.assert_allclose(others[:, 0, 0, 0], histories[0, -1, 0, 0] + 0.1 * 29.0, atol=0.1)  # from the robot's state
+    assert np.abs(others[..., 1] - LANE_CENTRE_Y["right"]).max() < 3.0  # the robot's lane, give or take its lane change
+
+
+def test_a_driver_model_near_the_cutoff_prefers_a_proposal_that_swaps_lanes_in_time():
+    driver = load_model("driver")
+    agent = ModelDriver(driver)
+    histories, futures = _driver_situation()  # the human 100 m behind the robot, in the left lane
+    agent.reset(np.random.default_rng(0), histories[:, 0], me=1)
+    agent.others = lambda h: np.repeat(futures[None], agent.anticipation, axis=0)
+    agent.proposals = 2
+    agent.model.sample_futures = _proposing(driver, (0.0, 0.0), (0.0, -3.0))  # keep the lane; change it
+    far = histories.copy()
+    far[:, :, 1, 0] = CUTOFF_X - 150.0  # 150 m to the cutoff: either will do, the first is taken
+    np.testing.assert_allclose(agent.sample(far, futures)[0, :, 1], 0.0, atol=1e-5)
+    near = histories.copy()
+    near[:, :, 1, 0] = CUTOFF_X - 90.0  # still in its lane in 1.5 s, 46 m (1.6 s) short of the cutoff: late
+    np.testing.assert_allclose(agent.sample(near, futures)[0, :, 1], -3.0, atol=1e-5)

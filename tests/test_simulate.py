@@ -16,11 +16,12 @@ from trafficweaving.cli import main
 from trafficweaving.data.trials import TrialSet, load_trials
 from trafficweaving.errors import InputError
 from trafficweaving.planning.planner import Budget
-from trafficweaving.scenario import (COLLISION_DX, CUTOFF_X, DT, LANE_CENTRE_Y, REPLAN_PERIOD_S, START_X, SWAP_THRESHOLD_Y,
-                                     study_initial_conditions)
+from trafficweaving.scenario import (CAR_LENGTH, COLLISION_DX, CUTOFF_X, DT, LANE_CENTRE_Y, REPLAN_PERIOD_S,
+                                    START_X, SWAP_THRESHOLD_Y, lane_of, study_initial_conditions, time_to_collision)
 from trafficweaving.sim.batch import EpisodeFailed, episode_path, simulate
 from trafficweaving.sim.episodes import EpisodeSpec, run_episode
-from trafficweaving.sim.metrics import Z95, aggregate, episode_metrics, latency_summary, mean_interval, wilson_interval
+from trafficweaving.sim.metrics import (SCORE_WEIGHTS, Z95, aggregate, comfort_violations, episode_metrics, lane_reversals,
+                                       latency_summary, mean_interval, wilson_interval)
 
 LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
 T = 80  # steps of a hand-built record: 8 s at 30 m/s from START_X ends 95 m past the cutoff
@@ -114,6 +115,62 @@ def test_latency_summary():
     assert latency_summary([]) == {"plans": 0, "median_s": None, "p99_s": None, "deadline_misses": 0}
 
 
+# ---------------------------------------------------------------- the closed-loop score
+def test_score_of_a_clean_comfortable_weave_is_its_weighted_progress():
+    robot = car(START_X + 10, 30, LEFT, RIGHT, change=(10, 60))  # 5 s lane change: within the comfort limits
+    m = metrics(robot, car(START_X, 30, RIGHT, LEFT, change=(20, 70)))
+    score = m["score"]
+    assert all(score["multipliers"].values()) and score["ttc"] == 1.0 and score["comfort"] == 1.0
+    assert score["comfort_violations"] == 0 and score["steps"] == T and m["lane_reversals"] == 0
+    crossed = np.flatnonzero(lane_of(robot[:, 1]) != "left")[0]
+    progress = 0.5 * ((CUTOFF_X - robot[crossed, 0]) / (CUTOFF_X - robot[0, 0]) + 1.0)  # speed kept: 1
+    assert score["progress"] == pytest.approx(progress)
+    assert score["score"] == pytest.approx((SCORE_WEIGHTS["ttc"] + SCORE_WEIGHTS["progress"] * progress
+                                            + SCORE_WEIGHTS["comfort"]) / sum(SCORE_WEIGHTS.values()))
+
+
+def test_an_earlier_swap_at_the_kept_speed_scores_more_progress():
+    human = car(START_X, 30, RIGHT, LEFT, change=(20, 70))
+    early = metrics(car(START_X + 10, 30, LEFT, RIGHT, change=(5, 55)), human)["score"]
+    late = metrics(car(START_X + 10, 30, LEFT, RIGHT, change=(25, 75)), human)["score"]
+    slow = metrics(car(START_X + 10, 30, LEFT, RIGHT, change=(5, 55), accel=-1.0), human)["score"]
+    assert early["progress"] > late["progress"] and early["progress"] > slow["progress"]
+
+
+@pytest.mark.parametrize("record, multiplier", [
+    (lambda: (car(START_X - 30, 34, LEFT, RIGHT, change=(60, 75)), car(START_X, 28, LEFT)), "no_collision"),
+    (lambda: (car(START_X + 10, 30, LEFT, RIGHT, change=(62, 75)), car(START_X, 30, RIGHT, LEFT)), "lane_swap"),
+    (lambda: (car(START_X + 10, 30, LEFT, -9.0, change=(15, 40)), car(START_X, 30, RIGHT, LEFT)), "on_road"),
+])
+def test_a_collision_no_swap_before_the_cutoff_or_leaving_the_road_zeroes_the_score(record, multiplier):
+    score = metrics(*record())["score"]
+    assert score["score"] == 0.0 and not score["multipliers"][multiplier]
+
+
+def test_a_harsh_lane_change_breaks_comfort_and_a_close_cut_breaks_ttc():
+    human = car(START_X - 40, 30, RIGHT, LEFT, change=(20, 70))
+    harsh = metrics(car(START_X + 10, 30, LEFT, RIGHT, change=(20, 30)), human)["score"]  # 1 s: over 20 m/s²
+    assert harsh["comfort"] == 0.0 and harsh["comfort_violations"] > 0 and harsh["score"] > 0
+    assert comfort_violations(car(START_X, 30, LEFT, RIGHT, change=(20, 30))[:, 4:6]).any()
+    # 12 m behind the human in its lane and 3 m/s faster, the robot leaves the lane with 0.9 m to spare
+    close = metrics(car(START_X - 12, 31, LEFT, RIGHT, change=(5, 45)), car(START_X, 28, LEFT))
+    assert not close["collision"] and close["score"]["ttc"] == 0.0 and close["score"]["score"] > 0
+    ttc = time_to_collision(car(START_X - 12, 31, LEFT), car(START_X, 28, LEFT))
+    np.testing.assert_allclose(ttc[0], (12 - CAR_LENGTH) / 3.0)
+    assert np.isinf(time_to_collision(car(START_X, 31, LEFT), car(START_X - 12, 28, LEFT))).all()  # opening gap
+
+
+def test_lane_reversals_count_turns_back_towards_the_start_lane():
+    steps = np.arange(60)
+    towards, back = -1.0, 1.0  # from the left lane the target lies at smaller y
+    yd = np.where(steps < 20, towards, np.where(steps < 30, back, towards))
+    y = LEFT + np.cumsum(yd) * DT
+    assert lane_reversals(y, yd) == 1
+    assert lane_reversals(y, np.where(steps < 20, towards, 0.1 * back)) == 0  # slower than REVERSAL_SPEED: not counted
+    chatter = np.concatenate([np.full(20, towards), np.tile([back, towards], 5)])  # settling with chatter
+    assert lane_reversals(LEFT + np.cumsum(chatter) * DT, chatter) == 5
+
+
 # ---------------------------------------------------------------- aggregates
 def test_wilson_interval_ends_and_middle():
     for n in (1, 7, 100):
@@ -148,6 +205,10 @@ def test_aggregate_breakdown():
     rows = [(r["dv"], r["tco"], r["robot_lane"], r["episodes"]) for r in s["by_initial_condition"]]
     assert rows == [(0.0, None, "left", 2), (2.0, 1.0, "right", 1)]
     assert s["by_initial_condition"][0]["success_rate"]["ci95"] == wilson_interval(2, 2)
+    assert s["score"]["n"] == 3 and s["score"]["mean"] == pytest.approx(2 * good["score"]["score"] / 3)
+    assert s["score_parts"]["no_collision"]["count"] == 2 and s["score_parts"]["progress"]["n"] == 3
+    assert s["lane_reversals"]["at_most_one"]["count"] == 3
+    assert s["comfort_violation_steps"]["steps"] == 3 * T
     json.dumps(s, allow_nan=False)
 
 

@@ -186,6 +186,18 @@ def colliding(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (np.abs(a[..., 0] - b[..., 0]) < COLLISION_DX) & (np.abs(a[..., 1] - b[..., 1]) < COLLISION_DY)
 
 
+def time_to_collision(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Time until two cars touch bumpers at their present speeds, for their states ``a``, ``b``
+    ``[..., 6]`` at the same steps: the gap ``|Δx| - CAR_LENGTH`` (0 when overlapping) over the
+    closing speed, while they overlap laterally (``|Δy| < COLLISION_DY``) and close in; ``inf``
+    otherwise. Seconds, shape ``[...]``."""
+    dx = b[..., 0] - a[..., 0]
+    closing = -np.sign(dx) * (b[..., 2] - a[..., 2])  # m/s, > 0: the gap shrinks
+    same_lane = np.abs(b[..., 1] - a[..., 1]) < COLLISION_DY
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(same_lane & (closing > 0), np.maximum(np.abs(dx) - CAR_LENGTH, 0.0) / closing, np.inf)
+
+
 def on_road(y: np.ndarray) -> np.ndarray:
     """Whether lateral positions ``y`` (m, any shape) are on the road, ``ROAD_Y_MIN <= y <= ROAD_Y_MAX``."""
     return (y >= ROAD_Y_MIN) & (y <= ROAD_Y_MAX)

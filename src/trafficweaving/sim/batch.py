@@ -255,7 +255,12 @@ def summary_table(summary: dict) -> str:
     def num(value, digits: int = 2) -> str:
         return "n/a" if value is None else f"{value:.{digits}f}"
 
-    lat = summary["planner_latency_s"]
+    def interval(m: dict, digits: int = 2) -> str:
+        if m["mean"] is None:
+            return "n/a"
+        return num(m["mean"], digits) + ("" if m["ci95"] is None else f" [{num(m['ci95'][0], digits)}, {num(m['ci95'][1], digits)}]")
+
+    lat, parts = summary["planner_latency_s"], summary["score_parts"]
     gap = summary["min_gap_m"]
     lines = [
         f"{summary['episodes']} episodes, robot {summary['robot']} vs human {summary['human']}, seed {summary['seed']} "
@@ -264,6 +269,10 @@ def summary_table(summary: dict) -> str:
         f"near collisions {summary['near_collisions']} ({pct(summary['near_collision_rate'])})",
         f"robot first {pct(summary['robot_first_rate'])}   human swapped {pct(summary['human_swap_rate'])}   "
         f"time to swap {num(summary['time_to_swap_s']['mean'])} s",
+        f"score {interval(summary['score'], 3)} (ttc {num(parts['ttc']['mean'])}, progress "
+        f"{num(parts['progress']['mean'])}, comfort {num(parts['comfort']['mean'])})   lane reversals "
+        f"{num(summary['lane_reversals']['mean'])} per episode, at most one in {pct(summary['lane_reversals']['at_most_one'])}   "
+        f"comfort violations {summary['comfort_violation_steps']['count']} of {summary['comfort_violation_steps']['steps']} steps",
         f"longitudinal gap while overlapping laterally: min {num(gap['min'])} m, mean of episodes {num(gap['mean'])} m; "
         f"closest centres: mean of episodes {num(summary['min_distance_m']['mean'])} m",
         (f"planner latency median {num(lat['median'], 3)} s, p99 {num(lat['p99'], 3)} s over {lat['plans']} plans; "

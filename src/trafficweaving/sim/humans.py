@@ -27,7 +27,7 @@ from ..dynamics import constant_acceleration_future, future_states
 from ..errors import InputError
 from ..model.checkpoint import load_model
 from ..model.cvae import CVAE
-from ..scenario import DT, HORIZON, MIN_HISTORY, colliding, lane_of, on_road
+from ..scenario import CUTOFF_X, DT, HORIZON, MIN_HISTORY, across_divider, colliding, lane_of, on_road
 from .drivers import DriverAgents, DriverModel, DriverStyles
 from .robots import RuleBasedRobot
 from .world import Agent
@@ -39,6 +39,14 @@ HUMAN_SPECS = ("synthetic, model:SPEC (SPEC: driver, default, a checkpoint path 
 
 DRIVER_PROPOSALS = 8
 """Futures a driver model samples per decision to find a safe one (:class:`ModelDriver`)."""
+
+DRIVER_ANTICIPATION = 8
+"""Futures of the other car a driver model predicts per decision to judge its proposals by."""
+
+DEADLINE_S = 2.0
+"""A driver model's proposal is late when it leaves the car short of the divider less than this
+many seconds before the cutoff (at its speed then): about how long the real drivers take from
+starting a lane change to crossing the divider (1.9 s median, :func:`~trafficweaving.data.behaviour.lane_change_events`)."""
 
 
 class SyntheticDrivers:
@@ -82,13 +90,17 @@ class ModelDriver:
     steps exist; before that it holds its present acceleration. It draws from one
     ``torch.Generator`` seeded at reset from the rng, so a run is reproducible from its seed.
 
-    ``proposals`` > 1 samples that many futures per episode and executes one whose 1.5 s of own
-    positions (from its present state) stay on the road and clear of the robot's future it is
-    conditioned on (the first such; when none is, the one whose first unsafe step comes latest):
-    the model's distribution conditioned on a safe near future, as a driver who sees a collision
-    coming picks another action. Default: :data:`DRIVER_PROPOSALS` for a driver model (one
-    conditioned on the guess, ``CVAEConfig.robot_future == "guess"``), 1 (plain samples) for the
-    paper's models.
+    ``proposals`` > 1 samples that many futures per episode and executes the one with the least
+    risk: the share of the robot's futures its 1.5 s of own positions (from its present state)
+    collide with, leaving the road counting as more than any collision; among equally risky ones
+    the first, or when all are unsafe the one whose first danger comes latest. The robot's futures:
+    the one it is conditioned on and, with ``anticipation`` > 0, that many the model predicts for
+    the robot (:meth:`others`: each car sampling the other's future from its own model); such a
+    driver also knows the task: a proposal that leaves it short of the divider too near the
+    cutoff (:data:`DEADLINE_S`) counts as half a collision. That is the model's distribution
+    conditioned on a safe near future, as a driver who sees a collision coming picks another action. Defaults: :data:`DRIVER_PROPOSALS` and :data:`DRIVER_ANTICIPATION`
+    for a driver model (one conditioned on the guess, ``CVAEConfig.robot_future == "guess"``), 1
+    and 0 (plain samples) for the paper's models.
 
     The robot's future: by default the guess :func:`constant_acceleration_future` (the robot holds
     its present acceleration). With ``robot_plan=True`` the simulation tells it the robot's plan:
@@ -100,14 +112,19 @@ class ModelDriver:
     BLOCK = 3
     """Steps executed from each sample (0.3 s)."""
 
-    def __init__(self, model: CVAE, robot_plan: bool = False, proposals: int | None = None):
+    def __init__(self, model: CVAE, robot_plan: bool = False, proposals: int | None = None,
+                 anticipation: int | None = None):
         if robot_plan and model.config.robot_future == "guess":
             raise InputError("this model is conditioned on a guess of the robot's future, not on its plan "
                              "(expected a model conditioned on recorded futures for robot_plan)")
         self.model = model.eval()
         if proposals is None:
             proposals = DRIVER_PROPOSALS if model.config.robot_future == "guess" else 1
+        if anticipation is None:
+            anticipation = DRIVER_ANTICIPATION if model.config.robot_future == "guess" else 0
         self.proposals = validate.integer("proposals", proposals, 1)
+        self.anticipation = validate.integer("anticipation", anticipation, 0)
+        self.start_y = np.zeros(0)  # [m] each episode's lateral position at reset: the lane it leaves
         weights = next(model.parameters())
         self.device, self.dtype = weights.device, weights.dtype
         self.robot_plan = robot_plan
@@ -119,6 +136,7 @@ class ModelDriver:
 
     def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
         self.me = me
+        self.start_y = np.asarray(start)[:, me, 1].copy()
         self.generator.manual_seed(int(rng.integers(0, 2**63)))
         self.robot_future, self.left = None, 0
 
@@ -155,10 +173,29 @@ class ModelDriver:
         pick = np.zeros(len(histories), dtype=int)
         if self.proposals > 1:
             own = future_states(histories[:, -1, 1], samples)  # [K, m, 15, 6]
-            unsafe = ~on_road(own[..., 1]) | colliding(own, robot_futures[None])  # [K, m, 15]
+            others = robot_futures[None]
+            if self.anticipation:
+                others = np.concatenate([others, self.others(histories)])  # [A+1, m, 15, 6]
+            hits = colliding(own[:, None], others[None])  # [K, A+1, m, 15]
+            off = ~on_road(own[..., 1])  # [K, m, 15]
+            unsafe = hits.any(1) | off
             first = np.where(unsafe.any(-1), unsafe.argmax(-1), HORIZON)  # first unsafe step; 15: none
-            pick = first.argmax(0)  # the first safe sample, else the one unsafe latest
+            risk = hits.any(-1).mean(1) + 2.0 * off.any(-1) + 1e-3 * (HORIZON - first) / HORIZON  # [K, m]
+            if self.anticipation:
+                end = own[:, :, -1]  # [K, m, 6]: where each proposal leaves the car in 1.5 s
+                late = ~across_divider(self.start_y, end[..., 1]) & (CUTOFF_X - end[..., 0] < DEADLINE_S * end[..., 2])
+                risk = risk + 0.5 * late
+            pick = risk.argmin(0)
         return samples[pick, np.arange(len(histories)), : self.BLOCK]
+
+    def others(self, histories: np.ndarray) -> np.ndarray:
+        """The robot's futures as this driver's model predicts them, ``[A, m, 15, 6]``: the model
+        with the seats swapped, conditioned on this driver holding its present acceleration."""
+        tensor = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=self.dtype, device=self.device)  # noqa: E731
+        swapped = histories[:, :, ::-1]
+        batch = self.model.situations(tensor(swapped), tensor(constant_acceleration_future(swapped[:, -1, 0])))
+        samples = self.model.actions_to_physical(self.model.sample_futures(batch, self.anticipation, self.generator))
+        return future_states(histories[:, -1, 0], samples.double().cpu().numpy())
 
 
 class ReplayedCar:

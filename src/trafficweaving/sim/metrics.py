@@ -28,7 +28,11 @@ robot's car index), judged by the scenario's rules
   differences of consecutive accelerations over ``DT``), ``longitudinal`` and ``lateral``, over
   the whole record;
 * ``time_to_swap_s``: time from the start until the robot is first in the other lane (across
-  ``LANE_DIVIDER_Y``, :func:`~trafficweaving.scenario.lane_of`), s; None if it never is.
+  ``LANE_DIVIDER_Y``, :func:`~trafficweaving.scenario.lane_of`), s; None if it never is;
+* ``lane_reversals``: how often the robot's sideways motion turns back towards the lane it
+  started in (:func:`lane_reversals`);
+* ``score``: the closed-loop score and its parts (:func:`closed_loop_score`, after nuPlan's:
+  Caesar et al., 2021; ``docs/closed_loop.md``).
 
 The planner's latencies (:func:`latency_summary`; seconds per plan, which vary between runs, so
 they are kept apart from the metrics above, which a run reproduces exactly) give ``plans``, ``median_s``, ``p99_s`` and
@@ -49,8 +53,8 @@ import torch
 from scipy import stats
 
 from ..planning.costs import PaperCost
-from ..scenario import (COLLISION_DY, CUTOFF_X, DT, LANE_CENTRE_Y, REPLAN_PERIOD_S, VALIDITY_REASONS, check_validity,
-                        lane_of, swapped_before_cutoff)
+from ..scenario import (COLLISION_DY, CUTOFF_X, DT, LANE_CENTRE_Y, LANE_DIVIDER_Y, REPLAN_PERIOD_S, VALIDITY_REASONS,
+                        check_validity, lane_of, on_road, swapped_before_cutoff, time_to_collision)
 
 Z95 = float(stats.norm.ppf(0.975))
 """Two-sided 95 % standard normal quantile (1.96)."""
@@ -112,7 +116,76 @@ def episode_metrics(states: np.ndarray, length: int, robot: int, dt: float = DT)
         "accel_rms": {"longitudinal": _rms(acc[:, 0]), "lateral": _rms(acc[:, 1])},
         "jerk_rms": {"longitudinal": _rms(jerk[:, 0]), "lateral": _rms(jerk[:, 1])},
         "time_to_swap_s": float(crossed[0] * dt) if len(crossed) else None,
+        "lane_reversals": lane_reversals(y[robot], states[robot, :, 3]),
+        "score": closed_loop_score(states, robot, outcome, robot_swapped, dt),
     }
+
+
+# ---------------------------------------------------------------- the closed-loop score
+TTC_LIMIT_S = 0.95
+"""Time to collision a robot must keep at every step (nuPlan's ego TTC bound), s."""
+
+COMFORT_LIMITS = {"longitudinal_accel": (-4.05, 2.40), "lateral_accel": 4.89, "longitudinal_jerk": 4.13, "jerk": 8.37}
+"""nuPlan's comfort limits: longitudinal acceleration range and largest lateral acceleration
+(m/s²), largest longitudinal and total (vector norm) jerk (m/s³)."""
+
+SCORE_WEIGHTS = {"ttc": 5.0, "progress": 5.0, "comfort": 2.0}
+"""Weights of the score's averaged parts (nuPlan's closed-loop score weighs TTC and progress 5,
+comfort 2). Fixed once published, so that scores stay comparable."""
+
+REVERSAL_SPEED = 0.2
+"""Lateral speed (m/s) above which the robot counts as moving sideways for :func:`lane_reversals`."""
+
+
+def comfort_violations(accelerations: np.ndarray, dt: float = DT) -> np.ndarray:
+    """Steps ``[T]`` (bool) at which accelerations ``[T, 2]`` (m/s², ``[xdd, ydd]``) or their jerk
+    (differences over ``dt``; none at the first step) break :data:`COMFORT_LIMITS`."""
+    low, high = COMFORT_LIMITS["longitudinal_accel"]
+    jerk = np.vstack([np.zeros((1, 2)), np.diff(accelerations, axis=0) / dt])
+    return ((accelerations[:, 0] < low) | (accelerations[:, 0] > high)
+            | (np.abs(accelerations[:, 1]) > COMFORT_LIMITS["lateral_accel"])
+            | (np.abs(jerk[:, 0]) > COMFORT_LIMITS["longitudinal_jerk"])
+            | (np.hypot(jerk[:, 0], jerk[:, 1]) > COMFORT_LIMITS["jerk"]))
+
+
+def lane_reversals(y: np.ndarray, yd: np.ndarray) -> int:
+    """How often a car with lateral positions ``y [T]`` and speeds ``yd [T]`` (m, m/s) turns back
+    towards the lane it started in: spells of sideways motion faster than :data:`REVERSAL_SPEED`
+    towards that lane that follow a spell towards the other lane."""
+    towards_target = -np.sign(LANE_DIVIDER_Y - y[0])  # +1: the target lane lies at larger y
+    moving = np.sign(yd * towards_target) * (np.abs(yd) > REVERSAL_SPEED)  # +1 towards the target, -1 back
+    spells = moving[moving != 0]
+    changes = spells[1:][spells[1:] != spells[:-1]]
+    return int((changes < 0).sum())
+
+
+def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swapped: bool, dt: float = DT) -> dict:
+    """nuPlan's closed-loop score, adapted to this task, of one episode ``states [2, T, 6]``
+    (recorded steps only) for the robot car ``robot``: ``score`` in [0, 1] = the product of the
+    ``multipliers`` (each 0 or 1: ``no_collision``; ``on_road``: the robot on the road until it
+    reaches the cutoff; ``lane_swap``: the robot across before the cutoff) times the
+    :data:`SCORE_WEIGHTS` mean of ``ttc`` (1 when the time to collision, :func:`time_to_collision`,
+    stays at least :data:`TTC_LIMIT_S` at every step, else 0), ``progress`` (the mean of how much of
+    the road to the cutoff was left when the robot crossed the divider and of its mean speed until
+    the cutoff relative to its start speed, at most 1) and ``comfort`` (1 with no step over
+    :data:`COMFORT_LIMITS`, else 0); also ``comfort_violations`` (the robot's steps over them)
+    and ``steps``."""
+    me, x = states[robot], states[robot, :, 0]
+    before_cutoff = np.maximum.accumulate(x) < CUTOFF_X
+    multipliers = {"no_collision": outcome != "collision",
+                   "on_road": bool(on_road(me[before_cutoff, 1]).all()), "lane_swap": robot_swapped}
+    ttc = time_to_collision(states[0], states[1])
+    lanes = lane_of(me[:, 1])
+    crossed = np.flatnonzero(lanes != lanes[0])
+    road = CUTOFF_X - x[0]
+    swap_left = float(np.clip((CUTOFF_X - x[crossed[0]]) / road, 0.0, 1.0)) if len(crossed) and road > 0 else 0.0
+    speed_kept = float(min(1.0, me[before_cutoff, 2].mean() / me[0, 2])) if me[0, 2] > 0 else 1.0
+    violations = comfort_violations(me[:, 4:6], dt)
+    parts = {"ttc": float(ttc.min() >= TTC_LIMIT_S), "progress": 0.5 * (swap_left + speed_kept),
+             "comfort": float(not violations.any())}
+    mean = sum(SCORE_WEIGHTS[k] * v for k, v in parts.items()) / sum(SCORE_WEIGHTS.values())
+    return {"score": float(all(multipliers.values())) * mean, "multipliers": multipliers, **parts,
+            "comfort_violations": int(violations.sum()), "steps": len(violations)}
 
 
 # ---------------------------------------------------------------- aggregates
@@ -172,6 +245,13 @@ def _group(records: Sequence[dict]) -> dict:
         "min_gap_m": {"min": min(gaps) if gaps else None, **mean_interval(gaps)},
         "min_distance_m": mean_interval(column("min_distance_m")),
         "time_to_swap_s": mean_interval(column("time_to_swap_s")),
+        "score": mean_interval([m["score"]["score"] for m in metrics]),
+        "score_parts": {**{k: rate([m["score"]["multipliers"][k] for m in metrics]) for k in ("no_collision", "on_road", "lane_swap")},
+                        **{k: mean_interval([m["score"][k] for m in metrics]) for k in SCORE_WEIGHTS}},
+        "lane_reversals": {**mean_interval(column("lane_reversals")),
+                           "at_most_one": rate([r <= 1 for r in column("lane_reversals")])},
+        "comfort_violation_steps": {"count": sum(m["score"]["comfort_violations"] for m in metrics),
+                                    "steps": sum(m["score"]["steps"] for m in metrics)},
     }
 
 
@@ -187,7 +267,10 @@ def aggregate(records: Sequence[dict]) -> dict:
     ``time_to_swap_s`` over episodes where the robot changed lane, ``accel_rms`` and ``jerk_rms``
     by direction), ``planner_latency_s`` (``median``, ``p99``, ``plans``) and ``deadline_misses``
     (plans longer than ``planning_period_s``) over all plans pooled, and ``by_initial_condition``:
-    the same rates and means per :func:`initial_condition_key`, sorted (unknown ``dv`` last).
+    the same rates and means per :func:`initial_condition_key`, sorted (unknown ``dv`` last); also
+    ``score`` (t-interval), ``score_parts`` (the multipliers as rates, the averaged parts as means),
+    ``lane_reversals`` (mean, and the rate of episodes with ``at_most_one``) and
+    ``comfort_violation_steps`` (``count`` of the robot's steps over the limits, of ``steps``).
     Undefined values are None (strict JSON).
     """
     summary = _group(records)

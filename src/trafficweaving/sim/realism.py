@@ -4,8 +4,10 @@ own rollouts?
 
 For every recorded trial and every car in it labelled ``human``, the agent takes that car over
 after the first ``MIN_HISTORY`` recorded steps and drives it ``rollouts`` times to the end of the
-recording, against the other car replayed as recorded (it does not react). Each rollout and the
-recording give the values of the :data:`FEATURES`, per step (speed, accelerations, jerks, held
+recording (and on, up to :data:`EXTENSION` steps, until it reaches the cutoff: whether a rollout
+swaps lanes before the cutoff is known only there), against the other car replayed as recorded (it
+does not react; past the recording it holds its last acceleration). Per-step features, who passed
+first and collisions are judged over the recorded steps. Each rollout and the recording give the values of the :data:`FEATURES`, per step (speed, accelerations, jerks, held
 controls, lateral position, distance and time to collision) or once per stream (when and where
 the lane change starts and crosses the divider, who passed first, collision, off road).
 
@@ -31,8 +33,8 @@ from ..data.behaviour import HOLD_TOLERANCE, lane_change_events
 from ..data.stats import swap_step
 from ..data.trials import TrialSet
 from ..model.exemplars import build_exemplars
-from ..scenario import (CAR_LENGTH, COLLISION_DY, CUTOFF_X, DT, MIN_HISTORY, ROAD_Y_MAX, ROAD_Y_MIN, across_divider,
-                        colliding, on_road, swapped_before_cutoff)
+from ..scenario import (CUTOFF_X, DT, MIN_HISTORY, ROAD_Y_MAX, ROAD_Y_MIN, across_divider, colliding, on_road,
+                        swapped_before_cutoff, time_to_collision)
 from .humans import ReplayedCar
 from .world import Agent, run_episodes
 
@@ -43,6 +45,8 @@ BINS = 20
 PSEUDOCOUNT = 0.1
 """Additive smoothing of each bin's count, so that no real value has probability 0 (the WOSAC
 configurations use 0.1)."""
+EXTENSION = 30
+"""Steps (3 s) a rollout may run past the end of its recording to reach the cutoff."""
 TTC_CAP = 5.0
 """Time to collision beyond this (or never: not closing, or not in the same lane) counts as it, s."""
 
@@ -93,14 +97,16 @@ about it. Fixed once published, so that scores stay comparable."""
 
 @dataclass
 class Streams:
-    """Recorded streams to roll out: ``states [n, 2, T, 6]`` with the other car first (car 0) and
-    the human car second (car 1), ``lengths [n]``, ``trial_ids [n]`` and the trials' start lanes
-    ``start_lanes [n, 2]`` in that order."""
+    """Recorded streams to roll out, or their rollouts: ``states [n, 2, T, 6]`` with the other car
+    first (car 0) and the human car second (car 1), ``lengths [n]``, ``trial_ids [n]``, the
+    trials' start lanes ``start_lanes [n, 2]`` in that order, and ``recorded [n]``: the recorded
+    length, over which per-step features are scored (a rollout's ``lengths`` may go beyond it)."""
 
     states: np.ndarray
     lengths: np.ndarray
     trial_ids: np.ndarray
     start_lanes: np.ndarray
+    recorded: np.ndarray
 
     @staticmethod
     def of(trials: TrialSet) -> "Streams":
@@ -111,19 +117,28 @@ class Streams:
         rows, agents = exemplars.stream_trial, exemplars.stream_agent
         order = np.stack([1 - agents, agents], axis=1)  # [n, 2]: other car, human
         return Streams(states=exemplars.streams.transpose(0, 2, 1, 3), lengths=exemplars.lengths.copy(),
-                       trial_ids=trials.trial_ids[rows], start_lanes=trials.start_lanes[rows[:, None], order])
+                       trial_ids=trials.trial_ids[rows], start_lanes=trials.start_lanes[rows[:, None], order],
+                       recorded=exemplars.lengths.copy())
 
     def __len__(self) -> int:
         return len(self.lengths)
 
+    def _apply(self, f: Callable[[np.ndarray], np.ndarray]) -> "Streams":
+        return Streams(*(f(a) for a in (self.states, self.lengths, self.trial_ids, self.start_lanes, self.recorded)))
+
     def repeat(self, r: int) -> "Streams":
         """Each stream ``r`` times in a row (stream-major)."""
-        return Streams(*(np.repeat(a, r, axis=0) for a in (self.states, self.lengths, self.trial_ids, self.start_lanes)))
+        return self._apply(lambda a: np.repeat(a, r, axis=0))
 
-    def as_trials(self) -> TrialSet:
-        """As a :class:`TrialSet` (roles: the other car ``robot``, the human car ``human``)."""
+    def select(self, rows: np.ndarray) -> "Streams":
+        """The streams ``rows`` (indices or a mask ``[n]``)."""
+        return self._apply(lambda a: a[rows])
+
+    def as_trials(self, recorded: bool = False) -> TrialSet:
+        """As a :class:`TrialSet` (roles: the other car ``robot``, the human car ``human``), up to
+        ``lengths`` or, with ``recorded``, to the recorded lengths."""
         n = len(self)
-        return TrialSet(states=self.states, lengths=self.lengths, trial_ids=self.trial_ids,
+        return TrialSet(states=self.states, lengths=self.recorded if recorded else self.lengths, trial_ids=self.trial_ids,
                         roles=np.tile(np.array(["robot", "human"]), (n, 1)), start_lanes=self.start_lanes,
                         drivers=np.full((n, 2), -1, dtype=np.int32), ic_dv=np.full(n, np.nan), ic_tco=np.full(n, np.nan),
                         sources=np.full(n, "realism"))
@@ -133,29 +148,20 @@ def roll_out(streams: Streams, agent: Agent, rollouts: int, rng: np.random.Gener
              progress: bool = False) -> Streams:
     """``rollouts`` rollouts of every stream (stream-major, ``[n · rollouts]``): ``agent`` drives
     the human car (car 1) from the stream's first ``MIN_HISTORY`` recorded steps to its recorded
-    length, the other car replays its recorded accelerations (its last one past the recording)."""
+    length and on until it reaches ``CUTOFF_X`` (at most :data:`EXTENSION` steps more), the other
+    car replays its recorded accelerations (its last one past the recording)."""
     many = streams.repeat(rollouts)
-    t_max = int(streams.lengths.max())
+    t_max = streams.states.shape[2] + EXTENSION
     steps = np.minimum(np.arange(t_max), many.lengths[:, None] - 1)  # [m, T]
     other = ReplayedCar(many.states[np.arange(len(many))[:, None], 0, steps, 4:6])
     world = run_episodes(many.states[:, :, :MIN_HISTORY], [other, agent], rng, max_steps=t_max, progress=progress,
                          until_max_steps=True)
     states = world.states.copy()
-    states[np.broadcast_to(np.arange(t_max)[None, None, :] >= many.lengths[:, None, None], states.shape[:3])] = np.nan
-    return Streams(states, many.lengths, many.trial_ids, many.start_lanes)
-
-
-def time_to_collision(states: np.ndarray) -> np.ndarray:
-    """Time until the human car (car 1 of ``states [..., 2, T, 6]``) and the other car touch
-    bumpers at their present speeds when they overlap laterally (``|Δy| < COLLISION_DY``) and close
-    in; :data:`TTC_CAP` otherwise (and at most that), s, ``[..., T]``."""
-    dx = states[..., 1, :, 0] - states[..., 0, :, 0]
-    gap = np.abs(dx) - CAR_LENGTH
-    closing = -np.sign(dx) * (states[..., 1, :, 2] - states[..., 0, :, 2])  # m/s, > 0: the gap shrinks
-    same_lane = np.abs(states[..., 1, :, 1] - states[..., 0, :, 1]) < COLLISION_DY
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ttc = np.where(same_lane & (closing > 0), np.maximum(gap, 0.0) / closing, TTC_CAP)
-    return np.minimum(ttc, TTC_CAP)
+    past = states[:, 1, :, 0] >= CUTOFF_X  # [m, T]
+    reached = np.where(past.any(axis=1), past.argmax(axis=1) + 1, t_max)
+    lengths = np.clip(reached, many.lengths, many.lengths + EXTENSION)
+    states[np.broadcast_to(np.arange(t_max)[None, None, :] >= lengths[:, None, None], states.shape[:3])] = np.nan
+    return Streams(states, lengths, many.trial_ids, many.start_lanes, many.lengths)
 
 
 def feature_values(streams: Streams, flags: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -166,7 +172,7 @@ def feature_values(streams: Streams, flags: dict[str, np.ndarray]) -> dict[str, 
     n, _, t_max, _ = s.shape
     human = s[:, 1]  # [n, T, 6]
     steps = np.arange(t_max)
-    driven = (steps[None, :] >= MIN_HISTORY) & (steps[None, :] < streams.lengths[:, None])
+    driven = (steps[None, :] >= MIN_HISTORY) & (steps[None, :] < streams.recorded[:, None])
     change = np.diff(human[..., 4:6], axis=1, prepend=np.nan)  # [n, T, 2]
     per_step = {
         "speed": human[..., 2], "accel_x": human[..., 4], "accel_y": human[..., 5],
@@ -174,7 +180,7 @@ def feature_values(streams: Streams, flags: dict[str, np.ndarray]) -> dict[str, 
         "held_x": (np.abs(change[..., 0]) < HOLD_TOLERANCE).astype(float),
         "held_y": (np.abs(change[..., 1]) < HOLD_TOLERANCE).astype(float),
         "distance": np.hypot(human[..., 0] - s[:, 0, :, 0], human[..., 1] - s[:, 0, :, 1]),
-        "time_to_collision": time_to_collision(s), "lateral_position": human[..., 1],
+        "time_to_collision": np.minimum(time_to_collision(s[:, 0], human), TTC_CAP), "lateral_position": human[..., 1],
     }
     values = {name: np.where(driven, v, np.nan) for name, v in per_step.items()}
 
@@ -187,7 +193,7 @@ def feature_values(streams: Streams, flags: dict[str, np.ndarray]) -> dict[str, 
     x = human[..., 0]
     at_crossing = x[np.arange(n), k] + frac * (x[np.arange(n), np.minimum(k + 1, t_max - 1)] - x[np.arange(n), k])
     values["crossing_x"] = np.where(np.isnan(events.crossing), np.nan, at_crossing)
-    both = swap_step(trials)
+    both = swap_step(streams.as_trials(recorded=True))
     y_both = s[np.arange(n), :, both, 1]  # [n, 2]
     swapped = across_divider(s[:, :, 0, 1], y_both).all(axis=1)
     ahead = s[np.arange(n), 1, both, 0] > s[np.arange(n), 0, both, 0]
@@ -198,11 +204,12 @@ def feature_values(streams: Streams, flags: dict[str, np.ndarray]) -> dict[str, 
 
 def rates(streams: Streams) -> dict[str, np.ndarray]:
     """Per stream ``[n]`` (bool): the human car's ``swap`` (across the divider before the cutoff,
-    :func:`~trafficweaving.scenario.swapped_before_cutoff`), ``off_road`` (off the road at a
-    driven step before it reaches the cutoff) and ``collision`` (with the other car, at any step)."""
+    :func:`~trafficweaving.scenario.swapped_before_cutoff`, over the whole rollout), ``off_road``
+    (off the road at a driven recorded step before it reaches the cutoff) and ``collision`` (with
+    the other car, at any recorded step: past the recording the other car is no longer real)."""
     s, lengths = streams.states, streams.lengths
     steps = np.arange(s.shape[2])[None, :]
-    recorded = steps < lengths[:, None]
+    recorded = steps < streams.recorded[:, None]
     before_cutoff = recorded & (steps >= MIN_HISTORY) & (np.fmax.accumulate(np.nan_to_num(s[:, 1, :, 0], nan=-np.inf), axis=1) < CUTOFF_X)
     return {"swap": swapped_before_cutoff(s, lengths)[:, 1],
             "off_road": (~on_road(s[:, 1, :, 1]) & before_cutoff).any(axis=1),
@@ -268,9 +275,12 @@ def score_streams(streams: Streams, rolled: Streams, rollouts: int) -> Realism:
     """The realism of ``rolled`` (:func:`roll_out` of ``streams``) against ``streams``."""
     real_flags, rolled_flags = rates(streams), rates(rolled)
     real, many = feature_values(streams, real_flags), feature_values(rolled, rolled_flags)
-    n = len(streams)
-    likelihoods = {name: feature_likelihood(real[name], many[name].reshape(n, rollouts, *many[name].shape[1:]), spec)
-                   for name, spec in FEATURES.items()}
+    n, t_max = len(streams), streams.states.shape[2]
+
+    def rolled_values(name: str, spec: Feature) -> np.ndarray:  # [n, R, T] on the streams' steps, or [n, R]
+        return many[name][:, :t_max].reshape(n, rollouts, t_max) if spec.per_step else many[name].reshape(n, rollouts)
+
+    likelihoods = {name: feature_likelihood(real[name], rolled_values(name, spec), spec) for name, spec in FEATURES.items()}
     rolled_rates = {k: v.reshape(n, rollouts).mean(axis=1) for k, v in rolled_flags.items()}
     return Realism(likelihoods, rolled_rates, real_flags, streams.trial_ids, rollouts)
 
@@ -295,8 +305,7 @@ def realism(trials: TrialSet, agents: Callable[[np.ndarray], list[tuple[np.ndarr
     parts = []
     groups = agents(np.unique(streams.trial_ids))
     for k, (ids, agent) in enumerate(tqdm(groups, desc="realism", unit="group", disable=not progress or len(groups) == 1)):
-        part = Streams(*(a[np.isin(streams.trial_ids, ids)] for a in
-                         (streams.states, streams.lengths, streams.trial_ids, streams.start_lanes)))
+        part = streams.select(np.isin(streams.trial_ids, ids))
         if len(part):
             parts.append(score_streams(part, roll_out(part, agent, rollouts, rng, progress), rollouts))
     return Realism.concatenate(parts)
