@@ -10,8 +10,8 @@ from trafficweaving.model.constant_velocity import ConstantVelocityHuman
 from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.model.predictor import HumanPredictor
 from trafficweaving.model.sampler import BatchedRollout
-from trafficweaving.planning.candidates import (ACCELERATIONS, N_ACTIONS, N_CANDIDATES, WINDOWS, Action, action_sequences,
-                                                robot_candidates, rollout)
+from trafficweaving.planning.candidates import (ACCELERATIONS, MOTIONS, N_ACTIONS, N_CANDIDATES, WINDOWS, Action,
+                                                action_sequences, robot_candidates, rollout)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import SCREENING_SAMPLES, Budget, Planner, example_history
@@ -331,3 +331,38 @@ def test_mpc_holds_then_replans_every_window_with_the_fixed_first_window():
     executed = rollout(robot[11], policy.plans[0].actions[1:2][None])[0]
     np.testing.assert_allclose(robot[12:15, 5], executed[:, 5])
     np.testing.assert_allclose(robot[12:14, 4], executed[:2, 4])
+
+
+def test_comfort_candidates_keep_to_the_comfort_limits_from_every_state_they_reach_and_the_paper_ones_do_not():
+    from trafficweaving.sim.metrics import comfort_violations  # the closed loop's own definition
+
+    def violating(present, first, motion):  # per candidate: a step over the limits, the present included
+        states = robot_candidates(present, first, motion).states
+        acc = np.concatenate([np.broadcast_to(present[4:6], (len(states), 1, 2)), states[..., 4:6]], 1)
+        return np.array([comfort_violations(a).any() for a in acc]), states
+
+    start = np.array([-100.0, RIGHT, 30.0, 0.0, 0.0, 0.0])
+    rng = np.random.default_rng(0)
+    presents = [start]
+    for first in (0, 1, 3, 6):  # states after a window and after two, as the MPC executes them
+        _, states = violating(start, first, MOTIONS["comfort"])
+        picks = rng.choice(len(states), 3, replace=False)
+        presents += [states[i, 2] for i in picks] + [states[i, 5] for i in picks]
+    for present in presents:
+        for first in (0, 3, N_ACTIONS - 1):
+            assert not violating(present, first, MOTIONS["comfort"])[0].any()
+    assert violating(start, 0, MOTIONS["paper"])[0].mean() > 0.5
+    comfort = robot_candidates(presents[-1], 0, MOTIONS["comfort"]).states
+    np.testing.assert_allclose(np.diff(comfort[..., 2], axis=1), DT * comfort[:, :-1, 4], atol=1e-12)  # Euler velocity
+
+
+def test_a_comfort_planner_drives_the_closed_loop_within_the_limits():
+    from trafficweaving.sim.metrics import comfort_violations
+
+    torch.manual_seed(0)
+    policy = MPCPolicy(Planner(HumanPredictor(CVAE()), motion=MOTIONS["comfort"]), budget=Budget(1, 2, 2))
+    world = World(_history(1))
+    policy.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
+    for _ in range(40):
+        world.step(np.stack([policy.act(world.history), np.zeros((1, 2))], axis=1))
+    assert len(policy.plans) >= 10 and not comfort_violations(world.history[0, 0, :, 4:6]).any()

@@ -127,11 +127,19 @@ def test_planner_robots_swap_lanes_without_collision(spec, start, me):
     assert len(robot.latencies) == len(robot.plans) >= 15
 
 
+def test_the_comfort_planner_is_the_planner_with_the_comfort_motion():
+    from trafficweaving.planning.candidates import MOTIONS
+    from trafficweaving.sim.robots import robot_planner
+
+    assert robot_planner("planner-comfort").motion == MOTIONS["comfort"]
+    assert robot_planner("planner").motion == robot_planner("planner-cv").motion == MOTIONS["paper"]
+
+
 # ---------------------------------------------------------------- bad input
 def test_bad_specs_and_arguments_raise_input_errors():
-    with pytest.raises(InputError, match=r"robot 'mpc' is unknown \(expected one of: planner, planner-cv, rules\)"):
+    with pytest.raises(InputError, match=r"robot 'mpc' is unknown \(expected one of: planner, planner-comfort, planner-cv, rules\)"):
         robot_agent("mpc")
-    assert ROBOT_SPECS == ("planner", "planner-cv", "rules")
+    assert ROBOT_SPECS == ("planner", "planner-comfort", "planner-cv", "rules")
     for bad in ({"time_headway": -1.0}, {"politeness": float("nan")}, {"hurried_lane_change_time": 4.0}):
         with pytest.raises(InputError, match=next(iter(bad))):
             RuleParameters(**bad)

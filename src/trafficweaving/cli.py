@@ -685,7 +685,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="closed-loop episodes of a robot against a human, with metrics and CIs")
     p.add_argument("--episodes", type=POSITIVE, required=True, help="episodes 0..N-1 (each from --seed and its index)")
-    p.add_argument("--robot", default="planner", help="planner (default), planner-cv or rules")
+    p.add_argument("--robot", default="planner", help="planner (default), planner-comfort (within nuPlan's comfort "
+                                                      "limits), planner-cv or rules")
     p.add_argument("--human", required=True, help="synthetic, model:SPEC, replay:FILE or replay:FILE#K, rules, "
                                                   "constant-velocity")
     p.add_argument("--seed", type=SEED, default=0)

@@ -2,7 +2,9 @@
 15-step horizon, the first one fixed, so ``8^4 = 4096`` sequences of 15 robot states.
 
 An action is a longitudinal acceleration held for the window and a lateral target lane, steered
-to by :mod:`.steering`. State convention (as in the authors' recordings of their robot): the
+to by :mod:`.steering`. How an action moves the robot is a :class:`Motion`: the paper's
+(:data:`MOTIONS` ``"paper"``), or ``"comfort"``, whose accelerations, jerks and lane changes keep
+to nuPlan's comfort limits (docs/closed_loop.md). State convention (as in the authors' recordings of their robot): the
 ``xdd`` stored at step ``k`` is the acceleration applied from ``k`` to ``k+1``; ``xd`` is
 integrated with Euler and ``x`` with the trapezoid rule.
 """
@@ -15,7 +17,7 @@ import numpy as np
 
 from ..dynamics import robot_longitudinal
 from ..scenario import DT, HORIZON, LANE_CENTRE_Y, LANES, REPLAN_STEPS
-from .steering import steer
+from .steering import JERK_WEIGHT, steer
 
 ACCELERATIONS = (0.0, 4.0, -3.0, -6.0)
 """The longitudinal actions, m/s²; the lateral ones are the :data:`~trafficweaving.scenario.LANES`
@@ -47,6 +49,28 @@ class Action:
         return Action(len(LANES) * ACCELERATIONS.index(acceleration) + LANES.index(lane))
 
 
+@dataclass(frozen=True)
+class Motion:
+    """How the candidates' actions move the robot: the longitudinal ``accelerations`` (m/s², one
+    per acceleration index of :class:`Action`; the first is 0, holding the speed), reached from the
+    present acceleration at most ``jerk`` m/s³ (None: at once, and held through the window, as in
+    the paper), and the lateral steering's jerk weight ``steering_weight`` (ρ of :mod:`.steering`)."""
+
+    accelerations: tuple[float, ...]
+    jerk: float | None
+    steering_weight: float
+
+
+MOTIONS = {
+    "paper": Motion(ACCELERATIONS, None, JERK_WEIGHT),
+    "comfort": Motion((0.0, 2.0, -2.0, -4.0), 4.0, 10.0),
+}
+"""The paper's motion (its lane change from rest takes 2.0 s and peaks at 6.1 m/s² and 31 m/s³
+sideways), and one within nuPlan's comfort limits (longitudinal acceleration −4.05…2.40 m/s²,
+lateral 4.89 m/s², longitudinal jerk 4.13 m/s³, total jerk 8.37 m/s³): ramps at 4 m/s³, and a
+lane change of 4.3 s from rest (across the divider in about half of it) peaking at 1.3 m/s² and
+3 m/s³ sideways, so that even a lane change turned back stays within the total jerk."""
+
 N_ACTIONS = len(ACCELERATIONS) * len(LANES)
 """Actions per window (8)."""
 N_CANDIDATES = N_ACTIONS ** (WINDOWS - 1)
@@ -72,8 +96,9 @@ def action_sequences(first: int, windows: int = WINDOWS) -> np.ndarray:
     return np.concatenate([np.full((len(free), 1), first), free], axis=1)
 
 
-def rollout(present: np.ndarray, actions: np.ndarray) -> np.ndarray:
-    """Robot states ``[C, 3·W, 6]`` after ``present [6]`` under action sequences ``actions [C, W]``.
+def rollout(present: np.ndarray, actions: np.ndarray, motion: Motion = MOTIONS["paper"]) -> np.ndarray:
+    """Robot states ``[C, 3·W, 6]`` after ``present [6]`` under action sequences ``actions [C, W]``
+    moving as ``motion``.
 
     The lateral boundary-value problem is solved once per distinct prefix of lane choices (at most
     ``len(LANES)^W`` solves), not once per candidate.
@@ -83,7 +108,11 @@ def rollout(present: np.ndarray, actions: np.ndarray) -> np.ndarray:
     c, w = actions.shape
     steps = STEPS_PER_WINDOW * w
     # longitudinal: acceleration applied from each step, Euler velocity, trapezoid position
-    acc = np.repeat(np.asarray(ACCELERATIONS)[actions // len(LANES)], STEPS_PER_WINDOW, axis=1)  # [C, steps], applied from t+k
+    acc = np.repeat(np.asarray(motion.accelerations)[actions // len(LANES)], STEPS_PER_WINDOW, axis=1)  # [C, steps], applied from t+k
+    if motion.jerk is not None:  # from the present acceleration towards each window's, at most jerk·DT a step
+        acc[:, 0] = present[4]
+        for k in range(1, steps):
+            acc[:, k] = acc[:, k - 1] + np.clip(acc[:, k] - acc[:, k - 1], -motion.jerk * DT, motion.jerk * DT)
     x, xd = robot_longitudinal(np.full(c, present[0]), np.full(c, present[2]), acc)  # at t+1..t+steps
     xdd = np.concatenate([acc[:, 1:], acc[:, -1:]], axis=1)  # stored at t+k: applied from t+k (last: held)
 
@@ -97,7 +126,7 @@ def rollout(present: np.ndarray, actions: np.ndarray) -> np.ndarray:
     for k in range(w):
         codes = parent * base + lanes[:, k]  # prefix code after window k
         unique, inverse = np.unique(codes, return_inverse=True)
-        path = steer(starts[unique // base], targets[unique % base], times)  # [P, 3, 4]
+        path = steer(starts[unique // base], targets[unique % base], times, motion.steering_weight)  # [P, 3, 4]
         lateral[:, STEPS_PER_WINDOW * k: STEPS_PER_WINDOW * (k + 1)] = path[inverse, :, :3]
         starts = np.zeros((base * (unique.max() + 1), 3))
         starts[unique] = path[:, -1, :3]
@@ -105,8 +134,8 @@ def rollout(present: np.ndarray, actions: np.ndarray) -> np.ndarray:
     return np.stack([x, lateral[..., 0], xd, lateral[..., 1], xdd, lateral[..., 2]], axis=-1)
 
 
-def robot_candidates(present: np.ndarray, first: int) -> Candidates:
+def robot_candidates(present: np.ndarray, first: int, motion: Motion = MOTIONS["paper"]) -> Candidates:
     """The :data:`N_CANDIDATES` candidates from the robot's ``present [6]`` state with window 0
-    fixed to ``first``."""
+    fixed to ``first``, moving as ``motion``."""
     actions = action_sequences(first)
-    return Candidates(rollout(present, actions), actions)
+    return Candidates(rollout(present, actions, motion), actions)

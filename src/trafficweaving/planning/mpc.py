@@ -68,7 +68,7 @@ class MPCPolicy:
         self.cost = self.fixed_cost or PaperCost(goal_y=LANE_CENTRE_Y[goal])
         self.hold = Action.of(0.0, lane).index
         windows = -(-self.hold_steps // STEPS_PER_WINDOW)
-        self.queue = list(rollout(robot, np.full((1, windows), self.hold))[0, : self.hold_steps])
+        self.queue = list(rollout(robot, np.full((1, windows), self.hold), self.planner.motion)[0, : self.hold_steps])
         self.next_fixed = self.hold
         self.plans, self.plan_steps, self.latencies = [], [], []
         self.planner.generator.manual_seed(int(rng.integers(2**63)))
@@ -155,7 +155,7 @@ class NonBlockingMPCPolicy(MPCPolicy):
                 self.upcoming = [int(a) for a in plan.actions[1:]]
             self.window = self.upcoming.pop(0) if self.upcoming else Action.of(0.0, Action(self.window).lane).index
             robot_now = history[0, self.me, -1]
-            self.queue = list(rollout(robot_now, np.array([[self.window]]))[0])
+            self.queue = list(rollout(robot_now, np.array([[self.window]]), self.planner.motion)[0])
             if self._pending is None:
                 robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: a copy
                 self._pending = (t, self._executor.submit(self._plan, robot_first, self.window))

@@ -25,7 +25,7 @@ from .. import validate
 from ..dynamics import future_states
 from ..errors import InputError
 from ..scenario import DT, HORIZON, LANE_CENTRE_Y, STATE_NAMES
-from .candidates import N_ACTIONS, N_CANDIDATES, WINDOWS, Candidates, robot_candidates
+from .candidates import MOTIONS, N_ACTIONS, N_CANDIDATES, WINDOWS, Candidates, Motion, robot_candidates
 from .costs import Cost
 
 
@@ -116,13 +116,16 @@ class Plan:
 class Planner:
     """Plans robot action sequences against a :class:`HumanModel`, on its device, drawing its
     random numbers from one generator seeded with ``seed`` (the same seed, model and calls give
-    the same plans). ``budget``: the default sample counts of :meth:`plan` (None: the paper's)."""
+    the same plans). ``budget``: the default sample counts of :meth:`plan` (None: the paper's);
+    ``motion``: how its candidates move the robot (:data:`~.candidates.MOTIONS`)."""
 
-    def __init__(self, human_model: HumanModel, budget: Budget | None = Budget(), seed: int = 0):
+    def __init__(self, human_model: HumanModel, budget: Budget | None = Budget(), seed: int = 0,
+                 motion: Motion = MOTIONS["paper"]):
         if not isinstance(human_model, HumanModel):
             raise InputError(f"human_model must be a HumanModel (prepare, sample, device, dtype; for a CVAE: "
                              f"HumanPredictor(cvae)), got {type(human_model).__name__}")
         self.human_model = human_model
+        self.motion = motion
         self.budget = plan_options(budget, None)[0] or Budget()
         self.device, self.dtype = torch.device(human_model.device), human_model.dtype
         self.generator = torch.Generator(device=self.device).manual_seed(validate.integer("seed", seed, 0))
@@ -133,7 +136,8 @@ class Planner:
         checked ``first_action``, their states ``[C, 15, 6]`` and the human's present state ``[6]``
         as tensors."""
         history = validate.history(history)
-        candidates = robot_candidates(history[-1, 0], validate.integer("first_action", first_action, 0, N_ACTIONS - 1))
+        candidates = robot_candidates(history[-1, 0], validate.integer("first_action", first_action, 0, N_ACTIONS - 1),
+                                      self.motion)
         robot = torch.as_tensor(candidates.states, dtype=self.dtype, device=self.device)
         human_present = torch.as_tensor(history[-1, 1], dtype=self.dtype, device=self.device)
         return history, candidates, robot, human_present

@@ -37,19 +37,19 @@ def _coefficients(state: np.ndarray, target: np.ndarray, T: np.ndarray) -> np.nd
     return np.linalg.solve(_gramian(T), _drift_gap(state, target, T)[..., None])[..., 0]
 
 
-def steering_cost(state: np.ndarray, target: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """``J(T) = T + (1/ρ) ∫ u² dt`` of the minimum-energy steering with final time ``T`` (s)."""
+def steering_cost(state: np.ndarray, target: np.ndarray, T: np.ndarray, weight: float = JERK_WEIGHT) -> np.ndarray:
+    """``J(T) = T + (1/ρ) ∫ u² dt`` of the minimum-energy steering with final time ``T`` (s), ρ = ``weight``."""
     d = _drift_gap(state, target, T)
-    return T + np.einsum("...i,...i->...", d, _coefficients(state, target, T)) / JERK_WEIGHT
+    return T + np.einsum("...i,...i->...", d, _coefficients(state, target, T)) / weight
 
 
-def optimal_time(state: np.ndarray, target: np.ndarray, iterations: int = 50) -> np.ndarray:
-    """Free final time ``T* [...]`` (s) minimising :func:`steering_cost`; 0 where the state is
-    already at the target. ``state [..., 3]``, ``target [...]`` (m)."""
+def optimal_time(state: np.ndarray, target: np.ndarray, iterations: int = 50, weight: float = JERK_WEIGHT) -> np.ndarray:
+    """Free final time ``T* [...]`` (s) minimising :func:`steering_cost` with ρ = ``weight``; 0
+    where the state is already at the target. ``state [..., 3]``, ``target [...]`` (m)."""
     state, target = np.asarray(state, float), np.asarray(target, float)
     lo = np.full(target.shape, np.log(T_BOUNDS[0]))
     hi = np.full(target.shape, np.log(T_BOUNDS[1]))
-    cost = lambda u: steering_cost(state, target, np.exp(u))  # noqa: E731
+    cost = lambda u: steering_cost(state, target, np.exp(u), weight)  # noqa: E731
     a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
     fa, fb = cost(a), cost(b)
     for _ in range(iterations):
@@ -63,12 +63,13 @@ def optimal_time(state: np.ndarray, target: np.ndarray, iterations: int = 50) ->
     return np.where(at_target, 0.0, T)
 
 
-def steer(state: np.ndarray, target: np.ndarray, times: np.ndarray) -> np.ndarray:
+def steer(state: np.ndarray, target: np.ndarray, times: np.ndarray, weight: float = JERK_WEIGHT) -> np.ndarray:
     """States ``[..., len(times), 4]`` = ``(y, yd, ydd, yddd)`` at ``times`` (s after the start) along
-    the optimal steering from ``state [..., 3]`` to ``(target, 0, 0)``; the target is held (jerk 0,
-    at rest) once the final time is reached."""
+    the optimal steering from ``state [..., 3]`` to ``(target, 0, 0)`` with jerk weight ρ =
+    ``weight`` (smaller: gentler and longer); the target is held (jerk 0, at rest) once the final
+    time is reached."""
     state, target, times = np.asarray(state, float), np.asarray(target, float), np.asarray(times, float)
-    T = optimal_time(state, target)
+    T = optimal_time(state, target, weight=weight)
     safe_T = np.where(T > 0, T, 1.0)
     c = _coefficients(state, target, safe_T)  # [..., 3]
     t = np.minimum(times, T[..., None])  # [..., K]

@@ -24,12 +24,13 @@ from ..errors import InputError
 from ..model.checkpoint import choose_device, load_model
 from ..model.constant_velocity import ConstantVelocityHuman
 from ..model.predictor import HumanPredictor
+from ..planning.candidates import MOTIONS
 from ..planning.mpc import MPCPolicy
 from ..planning.planner import Budget, Planner
 from ..scenario import CAR_LENGTH, COLLISION_DY, DT, LANE_CENTRE_Y, LANES, ROAD_END_X, STATE_NAMES, lane_of
 from .world import Agent
 
-ROBOT_SPECS = ("planner", "planner-cv", "rules")
+ROBOT_SPECS = ("planner", "planner-comfort", "planner-cv", "rules")
 """The robots :func:`robot_agent` builds."""
 
 
@@ -189,7 +190,9 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
       model ``model`` (``default``, a checkpoint path or ``authors:PATH``, as
       :func:`~trafficweaving.model.checkpoint.load_model`; the unimodal ``lstm`` variant is just
       ``model=path/to/lstm.pt``) through :class:`HumanPredictor` (``precision="auto"``);
-    * ``planner-cv``: the same policy against :class:`ConstantVelocityHuman` (``model`` unused);
+    * ``planner-comfort``: the same planner whose candidates keep to nuPlan's comfort limits
+      (:data:`~trafficweaving.planning.candidates.MOTIONS` ``"comfort"``);
+    * ``planner-cv``: the paper's planner against :class:`ConstantVelocityHuman` (``model`` unused);
     * ``rules``: :class:`RuleBasedRobot` (``model``, ``deadline``, ``budget`` unused).
 
     The planners run on ``device`` (``auto``, ``cpu``, ``cuda`` or ``cuda:N``) with the sample
@@ -205,9 +208,10 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
 
 def robot_planner(spec: str, model: str = "default", budget: Budget | None = None,
                   device: torch.device | str = "cpu") -> Planner:
-    """The :class:`Planner` of the planning robot ``spec`` (``planner`` or ``planner-cv``, as
-    :func:`robot_agent`), for policies that drive it their own way (the browser's non-blocking one)."""
+    """The :class:`Planner` of the planning robot ``spec`` (``planner``, ``planner-comfort`` or
+    ``planner-cv``, as :func:`robot_agent`), for policies that drive it their own way (the
+    browser's non-blocking one)."""
     device = choose_device(str(device))
     human_model = (ConstantVelocityHuman(device) if spec == "planner-cv"
                    else HumanPredictor(load_model(model, device), precision="auto"))
-    return Planner(human_model, budget)
+    return Planner(human_model, budget, motion=MOTIONS["comfort" if spec == "planner-comfort" else "paper"])
