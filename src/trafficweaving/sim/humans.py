@@ -98,9 +98,10 @@ class ModelDriver:
     the robot (:meth:`others`: each car sampling the other's future from its own model); such a
     driver also knows the task: a proposal that leaves it short of the divider too near the
     cutoff (:data:`DEADLINE_S`) counts as half a collision. That is the model's distribution
-    conditioned on a safe near future, as a driver who sees a collision coming picks another action. Defaults: :data:`DRIVER_PROPOSALS` and :data:`DRIVER_ANTICIPATION`
-    for a driver model (one conditioned on the guess, ``CVAEConfig.robot_future == "guess"``), 1
-    and 0 (plain samples) for the paper's models.
+    conditioned on a safe near future, as a driver who sees a collision coming picks another
+    action. Defaults: :data:`DRIVER_PROPOSALS` and :data:`DRIVER_ANTICIPATION` for a driver model
+    (one conditioned on the guess, ``CVAEConfig.robot_future == "guess"``), 1 and 0 (plain
+    samples) for the paper's models.
 
     The robot's future: by default the guess :func:`constant_acceleration_future` (the robot holds
     its present acceleration). With ``robot_plan=True`` the simulation tells it the robot's plan:
@@ -166,8 +167,7 @@ class ModelDriver:
     def sample(self, histories: np.ndarray, robot_futures: np.ndarray) -> np.ndarray:
         """The next block's accelerations ``[m, 3, 2]`` (m/s²), one model sample per episode, for
         robot-first ``histories [m, t+1, 2, 6]`` and ``robot_futures [m, 15, 6]``."""
-        tensor = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=self.dtype, device=self.device)  # noqa: E731
-        batch = self.model.situations(tensor(histories), tensor(robot_futures))
+        batch = self.model.situations(self._tensor(histories), self._tensor(robot_futures))
         samples = self.model.actions_to_physical(self.model.sample_futures(batch, self.proposals, self.generator))
         samples = samples.double().cpu().numpy()  # [K, m, 15, 2]
         pick = np.zeros(len(histories), dtype=int)
@@ -188,12 +188,14 @@ class ModelDriver:
             pick = risk.argmin(0)
         return samples[pick, np.arange(len(histories)), : self.BLOCK]
 
+    def _tensor(self, array: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(np.ascontiguousarray(array), dtype=self.dtype, device=self.device)
+
     def others(self, histories: np.ndarray) -> np.ndarray:
         """The robot's futures as this driver's model predicts them, ``[A, m, 15, 6]``: the model
         with the seats swapped, conditioned on this driver holding its present acceleration."""
-        tensor = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=self.dtype, device=self.device)  # noqa: E731
         swapped = histories[:, :, ::-1]
-        batch = self.model.situations(tensor(swapped), tensor(constant_acceleration_future(swapped[:, -1, 0])))
+        batch = self.model.situations(self._tensor(swapped), self._tensor(constant_acceleration_future(swapped[:, -1, 0])))
         samples = self.model.actions_to_physical(self.model.sample_futures(batch, self.anticipation, self.generator))
         return future_states(histories[:, -1, 0], samples.double().cpu().numpy())
 
