@@ -558,6 +558,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .model.calibrate import SCALES, TEMPERATURES
     from .model.predictor import PRECISIONS
     from .planning.candidates import N_CANDIDATES
+    from .sim.humans import HUMAN_SPECS
     from .sim.realism import ROLLOUTS
     from .web.options import COUNTDOWN_S, MODES, PLAN_DEADLINE_S
 
@@ -687,8 +688,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=POSITIVE, required=True, help="episodes 0..N-1 (each from --seed and its index)")
     p.add_argument("--robot", default="planner", help="planner (default), planner-comfort (within nuPlan's comfort "
                                                       "limits), planner-cv or rules")
-    p.add_argument("--human", required=True, help="synthetic, model:SPEC, replay:FILE or replay:FILE#K, rules, "
-                                                  "constant-velocity")
+    p.add_argument("--human", required=True, help=HUMAN_SPECS)
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--model", default="default", help="the planner's human model: checkpoint path, default, or authors:PATH")
     timing = p.add_mutually_exclusive_group()
@@ -708,7 +708,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("realism", help="closed-loop realism of a human agent on recorded trials (WOSAC-style, docs/realism.md)")
-    p.add_argument("--human", help="the agent: synthetic, model:SPEC, rules, constant-velocity, replay:FILE[#K]")
+    p.add_argument("--human", help=f"the agent: {HUMAN_SPECS}")
     p.add_argument("--folds", metavar="DIR", help="instead of --human: the fold models of `crossval --out DIR` on the "
                    "same data, each driving the trials it did not train on (out-of-fold)")
     p.add_argument("--data", required=True, help="recorded trials (Parquet); every car labelled human is rolled out")

@@ -167,9 +167,7 @@ class ModelDriver:
     def sample(self, histories: np.ndarray, robot_futures: np.ndarray) -> np.ndarray:
         """The next block's accelerations ``[m, 3, 2]`` (m/s²), one model sample per episode, for
         robot-first ``histories [m, t+1, 2, 6]`` and ``robot_futures [m, 15, 6]``."""
-        batch = self.model.situations(self._tensor(histories), self._tensor(robot_futures))
-        samples = self.model.actions_to_physical(self.model.sample_futures(batch, self.proposals, self.generator))
-        samples = samples.double().cpu().numpy()  # [K, m, 15, 2]
+        samples = self._futures(histories, robot_futures, self.proposals)  # [K, m, 15, 2]
         pick = np.zeros(len(histories), dtype=int)
         if self.proposals > 1:
             own = future_states(histories[:, -1, 1], samples)  # [K, m, 15, 6]
@@ -188,16 +186,19 @@ class ModelDriver:
             pick = risk.argmin(0)
         return samples[pick, np.arange(len(histories)), : self.BLOCK]
 
-    def _tensor(self, array: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(np.ascontiguousarray(array), dtype=self.dtype, device=self.device)
+    def _futures(self, histories: np.ndarray, robot_futures: np.ndarray, k: int) -> np.ndarray:
+        """``k`` sampled futures ``[k, m, 15, 2]`` (m/s²) of the human's accelerations for robot-first
+        ``histories [m, t+1, 2, 6]`` and ``robot_futures [m, 15, 6]``."""
+        tensor = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=self.dtype, device=self.device)  # noqa: E731
+        batch = self.model.situations(tensor(histories), tensor(robot_futures))
+        return self.model.actions_to_physical(self.model.sample_futures(batch, k, self.generator)).double().cpu().numpy()
 
     def others(self, histories: np.ndarray) -> np.ndarray:
         """The robot's futures as this driver's model predicts them, ``[A, m, 15, 6]``: the model
         with the seats swapped, conditioned on this driver holding its present acceleration."""
         swapped = histories[:, :, ::-1]
-        batch = self.model.situations(self._tensor(swapped), self._tensor(constant_acceleration_future(swapped[:, -1, 0])))
-        samples = self.model.actions_to_physical(self.model.sample_futures(batch, self.anticipation, self.generator))
-        return future_states(histories[:, -1, 0], samples.double().cpu().numpy())
+        samples = self._futures(swapped, constant_acceleration_future(swapped[:, -1, 0]), self.anticipation)
+        return future_states(histories[:, -1, 0], samples)
 
 
 class ReplayedCar:

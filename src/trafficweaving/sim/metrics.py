@@ -117,7 +117,7 @@ def episode_metrics(states: np.ndarray, length: int, robot: int, dt: float = DT)
         "jerk_rms": {"longitudinal": _rms(jerk[:, 0]), "lateral": _rms(jerk[:, 1])},
         "time_to_swap_s": float(crossed[0] * dt) if len(crossed) else None,
         "lane_reversals": lane_reversals(y[robot], states[robot, :, 3]),
-        "score": closed_loop_score(states, robot, outcome, robot_swapped, dt),
+        "score": closed_loop_score(states, robot, outcome, robot_swapped, int(crossed[0]) if len(crossed) else None, dt),
     }
 
 
@@ -159,7 +159,8 @@ def lane_reversals(y: np.ndarray, yd: np.ndarray) -> int:
     return int((changes < 0).sum())
 
 
-def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swapped: bool, dt: float = DT) -> dict:
+def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swapped: bool, crossed: int | None,
+                      dt: float = DT) -> dict:
     """nuPlan's closed-loop score, adapted to this task, of one episode ``states [2, T, 6]``
     (recorded steps only) for the robot car ``robot``: ``score`` in [0, 1] = the product of the
     ``multipliers`` (each 0 or 1: ``no_collision``; ``on_road``: the robot on the road until it
@@ -169,16 +170,14 @@ def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swappe
     the road to the cutoff was left when the robot crossed the divider and of its mean speed until
     the cutoff relative to its start speed, at most 1) and ``comfort`` (1 with no step over
     :data:`COMFORT_LIMITS`, else 0); also ``comfort_violations`` (the robot's steps over them)
-    and ``steps``."""
+    and ``steps``. ``crossed``: the first step the robot is in the other lane (None: never)."""
     me, x = states[robot], states[robot, :, 0]
     before_cutoff = np.maximum.accumulate(x) < CUTOFF_X
     multipliers = {"no_collision": outcome != "collision",
                    "on_road": bool(on_road(me[before_cutoff, 1]).all()), "lane_swap": robot_swapped}
     ttc = time_to_collision(states[0], states[1])
-    lanes = lane_of(me[:, 1])
-    crossed = np.flatnonzero(lanes != lanes[0])
     road = CUTOFF_X - x[0]
-    swap_left = float(np.clip((CUTOFF_X - x[crossed[0]]) / road, 0.0, 1.0)) if len(crossed) and road > 0 else 0.0
+    swap_left = float(np.clip((CUTOFF_X - x[crossed]) / road, 0.0, 1.0)) if crossed is not None and road > 0 else 0.0
     speed_kept = float(min(1.0, me[before_cutoff, 2].mean() / me[0, 2])) if me[0, 2] > 0 else 1.0
     violations = comfort_violations(me[:, 4:6], dt)
     parts = {"ttc": float(ttc.min() >= TTC_LIMIT_S), "progress": 0.5 * (swap_left + speed_kept),

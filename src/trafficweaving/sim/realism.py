@@ -286,7 +286,7 @@ def score_streams(streams: Streams, rolled: Streams, rollouts: int) -> Realism:
 
 
 def realism(trials: TrialSet, agents: Callable[[np.ndarray], list[tuple[np.ndarray, Agent]]], rollouts: int = ROLLOUTS,
-            seed: int = 0, progress: bool = False, log: Callable[[str], None] = print) -> Realism:
+            seed: int = 0, progress: bool = False) -> Realism:
     """The realism of a human agent on ``trials``' human streams (module docstring).
 
     ``agents(trial_ids)`` splits the trial ids ``[k]`` into groups, each with the agent that drives
@@ -304,7 +304,7 @@ def realism(trials: TrialSet, agents: Callable[[np.ndarray], list[tuple[np.ndarr
     rng = np.random.default_rng(seed)
     parts = []
     groups = agents(np.unique(streams.trial_ids))
-    for k, (ids, agent) in enumerate(tqdm(groups, desc="realism", unit="group", disable=not progress or len(groups) == 1)):
+    for ids, agent in tqdm(groups, desc="realism", unit="group", disable=not progress or len(groups) == 1):
         part = streams.select(np.isin(streams.trial_ids, ids))
         if len(part):
             parts.append(score_streams(part, roll_out(part, agent, rollouts, rng, progress), rollouts))
