@@ -82,14 +82,16 @@ def main() -> None:
         cells = [f"{reference['folds'][i]:.2f} / {ref_dir['x'][i]:.2f} / {ref_dir['y'][i]:.2f}" for i in range(k)]
         print(_row([f"{reference['model'].split(':')[0]} (reference)", *cells,
                     f"{reference['nll_exact']:.2f} / {np.mean(ref_dir['x']):.2f} / {np.mean(ref_dir['y']):.2f}", "—"]))
-    print("\n**Each fold's choice** (candidate, latent temperature, output scale x / y; made on its inner folds)\n")
+    print("\n**Each fold's choice** (candidate, latent temperature, output scale x / y, and the weight of the mixture "
+          "with the companion model where one was given; made on its inner folds)\n")
     print(f"| model | {folds} |")
     print("|---|" + "---|" * k)
     for name, cal in calibrations:
         candidates = cal.get("candidates") or []
         names = [n for n, _ in crossvals] if len(candidates) == len(crossvals) else candidates
         label = lambda c: names[c] if c < len(names) else f"candidate {c + 1}"  # noqa: E731
-        print(_row([name, *(f"{label(f['candidate'])}, {f['latent_temperature']:g}, {_scale(f['output_scale'])}"
+        mixed = lambda f: f", mixture {f['mixture_weight']:g}" if "companion" in cal else ""  # noqa: E731
+        print(_row([name, *(f"{label(f['candidate'])}, {f['latent_temperature']:g}, {_scale(f['output_scale'])}{mixed(f)}"
                             for f in cal["nested"]["folds"])]))
 
     print("\n**Non-nested against nested** (exact NLL, mean over folds)\n")

@@ -148,7 +148,8 @@ def main() -> None:
     if args.nested:
         lines += ["## Nested estimates", "",
                   "What a model trained by each recipe scores on trials it never saw, when every choice of the recipe "
-                  "(candidate, steps, calibration) is made without the fold it is scored on (model/crossval.py, "
+                  "(candidate, steps, calibration, and the weight of the mixture with the authors' model) is made without "
+                  "the fold it is scored on (model/crossval.py, "
                   "model/calibrate.py; [model.md](model.md#the-shipped-models)). Made by "
                   "`python scripts/nested_table.py` from the JSON of the commands in [model.md](model.md#reproduce).", "",
                   Path(args.nested).read_text().strip(), "",

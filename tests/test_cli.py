@@ -190,7 +190,9 @@ def test_fine_tuning_a_model_into_a_driver_conditioned_on_the_guess(capsys, tmp_
 
 
 def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoints(capsys, tmp_path):
-    from trafficweaving.model.checkpoint import load_checkpoint
+    from trafficweaving.model.calibrate import MIX_WEIGHTS
+    from trafficweaving.model.checkpoint import load_checkpoint, save_checkpoint
+    from trafficweaving.model.mixture import Mixture
 
     data, model, folds = tmp_path / "d.parquet", tmp_path / "m.pt", tmp_path / "folds"
     run(capsys, "generate", "--trials", 9, "--seed", 3, "--out", data, "--json")
@@ -214,6 +216,25 @@ def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoin
     code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--out", tmp_path / "w.pt",
                        "--samples", 10, "--temperatures", "1,2", "--scales", "1,1.5,2", "--workers", 2, "--json")
     assert code == 0 and json.loads(out)["grid"] == report["grid"]
+    # with a companion, the calibrated setting is then mixed with it at the weight chosen out-of-fold
+    code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--companion", model,
+                       "--out", tmp_path / "mixed.pt", "--out-folds", tmp_path / "mfolds", "--samples", 10,
+                       "--temperatures", "1,2", "--scales", "1,1.5,2", "--json")
+    mixed = json.loads(out)
+    extra = mixed["grid"][len(grid):]
+    assert code == 0 and mixed["grid"][:len(grid)] == grid and mixed["companion"] == str(model)
+    assert [r["mixture_weight"] for r in extra] == list(MIX_WEIGHTS) and all(r["mixture_weight"] == 1 for r in grid)
+    assert {(r["latent_temperature"], tuple(r["output_scale"].values())) for r in extra} == {(report["latent_temperature"], tuple(scale))}
+    weight = mixed["mixture_weight"]
+    loaded, _ = load_checkpoint(tmp_path / "mixed.pt")
+    fold, _ = load_checkpoint(tmp_path / "mfolds" / "fold_1.pt")
+    assert isinstance(loaded, Mixture) == isinstance(fold, Mixture) == (weight < 1)
+    assert weight == 1 or loaded.weights == pytest.approx([weight, 1 - weight])
+    trained, _ = load_checkpoint(model)
+    save_checkpoint(tmp_path / "mixture.pt", Mixture([trained, trained], [0.5, 0.5]))
+    code, _, err = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", tmp_path / "mixture.pt",
+                       "--out", tmp_path / "x.pt")
+    assert code == 2 and "is a mixture" in err and err.count("\n") == 1
     code, _, err = run(capsys, "calibrate", "--data", data, "--folds", tmp_path, "--model", model, "--out", tmp_path / "x.pt")
     assert code == 2 and "no fold_K.pt files" in err and err.count("\n") == 1
 

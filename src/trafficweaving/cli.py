@@ -281,8 +281,8 @@ def cmd_crossval(args) -> None:
 
 def cmd_calibrate(args) -> None:
     from .data.trials import load_trials
-    from .model.calibrate import calibrate, scale_of
-    from .model.checkpoint import model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
+    from .model.calibrate import calibrate, calibrated, scale_of
+    from .model.checkpoint import load_model, model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
     from .model.crossval import out_of_fold_models
 
     if len(args.model) != len(args.folds):
@@ -292,26 +292,33 @@ def cmd_calibrate(args) -> None:
     out_folds = check_output_folder(args.out_folds, "--out-folds") if args.out_folds is not None else None
     paths = [model_path(m) for m in args.model]
     payloads = [read_checkpoint(path) for path in paths]  # a bad --model fails before the long grid
+    for path, payload in zip(paths, payloads):
+        if "mixture" in payload:
+            raise InputError(f"--model {path}: is a mixture, already calibrated (expected the model trained on every fold "
+                             f"by the recipe of its --folds)")
+    companion = load_model(_model_spec(args.companion, "--companion")) if args.companion else None
     for folder in args.folds:
         out_of_fold_models(folder)
         if args.nested:
             out_of_fold_models(Path(folder) / "nested")
     trials = load_trials(args.data)
     result = calibrate(trials, args.folds, args.temperatures, args.scales, samples=args.samples, seed=args.seed,
-                       log=_log(args), nested=args.nested, workers=args.workers)
-    summary = result.summary()
+                       log=_log(args), nested=args.nested, workers=args.workers, companion=companion)
+    summary = result.summary() | ({"companion": args.companion} if companion is not None else {})
     candidate, temperature, scale = summary["candidate"], summary["latent_temperature"], scale_of(summary)
+    weight = summary["mixture_weight"]
     path, payload = paths[candidate], payloads[candidate]
-    model = model_from_checkpoint(payload, path).set_calibration(temperature, scale)
-    kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict")}
+    model = calibrated(model_from_checkpoint(payload, path), temperature, scale, companion, weight)
+    kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict", "mixture")}
     save_checkpoint(out, model, **{**kept, "calibration": summary})
     if out_folds is not None:
         for k, (fold_model, held) in enumerate(out_of_fold_models(args.folds[candidate])):
-            save_checkpoint(out_folds / f"fold_{k + 1}.pt", fold_model.set_calibration(temperature, scale),
+            save_checkpoint(out_folds / f"fold_{k + 1}.pt", calibrated(fold_model, temperature, scale, companion, weight),
                             held_out_trials=held, calibration=summary)
     cov = summary["coverage_90"]
+    mixed = f", mixed with {args.companion} at weight {weight:g}" if weight < 1 else ""
     lines = [f"calibrated {args.model[candidate]} -> {out}: latent temperature {temperature:g}, output scale x "
-             f"{scale[0]:g}, y {scale[1]:g} "
+             f"{scale[0]:g}, y {scale[1]:g}{mixed} "
              f"(out-of-fold NLL {summary['nll_exact']:.2f}, 90 % coverage at 1.5 s x {100 * cov['x']:.0f} %, "
              f"y {100 * cov['y']:.0f} %)"]
     if result.nested is not None:
@@ -330,6 +337,7 @@ def cmd_evaluate(args) -> None:
     from .model.checkpoint import choose_device, load_model
     from .model.exemplars import build_exemplars
     from .model.metrics import DIRECTIONS, PHASES, evaluate_instances
+    from .model.mixture import describe
 
     per_instance = check_output_file(args.per_instance, "--per-instance") if args.per_instance is not None else None
     model = load_model(args.model, choose_device(args.device))
@@ -352,7 +360,7 @@ def cmd_evaluate(args) -> None:
                        for p in PHASES)
     coverage = "; ".join(f"{d} " + ", ".join(f"{h} s {pct(c['50'])}/{pct(c['90'])}" for h, c in result["coverage"][d].items())
                          for d in DIRECTIONS)
-    _emit(args, payload, f"{args.model} ({model.config.name}) on {args.data}: {result['instances']} instances\n"
+    _emit(args, payload, f"{args.model} ({describe(model)}) on {args.data}: {result['instances']} instances\n"
                          f"NLL per instance (nats, 15×2 accelerations in m/s²): exact {_fmt(result['nll_exact'])}, "
                          f"importance-sampled {_fmt(result['nll_is'])}, naive {_fmt(result['nll_naive'])}\n"
                          f"  exact by direction (15 accelerations): x {_fmt(result['nll_exact_by_direction']['x'])}, "
@@ -389,6 +397,7 @@ def _parse_pick(text: str, trials) -> tuple[int, int, int]:
 def cmd_predict(args) -> None:
     from .data.trials import load_trials
     from .model.checkpoint import choose_device, load_model
+    from .model.mixture import describe
     from .viz.model_figures import plot_predictions
 
     out = check_output_file(args.out, "--out")
@@ -397,7 +406,7 @@ def cmd_predict(args) -> None:
     picks = [_parse_pick(text, trials) for text in args.at]
     model = load_model(args.model, choose_device(args.device))
     path = plot_predictions(model, trials, picks, out, samples=args.samples, seed=args.seed,
-                            title=f"{args.model} ({model.config.name}) on {Path(args.data).name}")
+                            title=f"{args.model} ({describe(model)}) on {Path(args.data).name}")
     _emit(args, {"out": str(path), "panels": len(picks)}, f"wrote {path}")
 
 
@@ -555,7 +564,7 @@ def _add_schedule_options(p, steps: int) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .model.calibrate import SCALES, TEMPERATURES
+    from .model.calibrate import MIX_WEIGHTS, SCALES, TEMPERATURES
     from .model.predictor import PRECISIONS
     from .planning.candidates import N_CANDIDATES
     from .sim.humans import HUMAN_SPECS
@@ -634,6 +643,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"latent temperatures of the grid, comma-separated (default {','.join(f'{v:g}' for v in TEMPERATURES)})")
     p.add_argument("--scales", type=_floats_in(0, 100), default=SCALES,
                    help=f"output scales of the grid, comma-separated (default {','.join(f'{v:g}' for v in SCALES)})")
+    p.add_argument("--companion", help="a model not trained on --data (e.g. authors:PATH) to mix the calibrated model with, "
+                   "the weight chosen out-of-fold among " + ", ".join(f"{w:g}" for w in MIX_WEIGHTS) + " and 1")
     p.add_argument("--out", required=True, help="the calibrated checkpoint")
     p.add_argument("--out-folds", help="also write the calibrated fold models here (for out-of-fold reports)")
     p.add_argument("--samples", type=_int_at_least(2), default=100, help="sampled futures per instance for the coverage")

@@ -92,12 +92,13 @@ def _human_model_report(dataset: TrialSet, reference: TrialSet | None, figures: 
     from .model.checkpoint import default_model_path, load_checkpoint
     from .model.evaluate import evaluate
     from .model.exemplars import build_exemplars
+    from .model.mixture import describe
     from .viz.model_figures import plot_predictions
 
     model, payload = load_checkpoint(default_model_path())
     if reference is not None:
         result = evaluate(model, build_exemplars(reference)).summary()
-        log(f"\nShipped human model ({model.config.name}: {payload.get('summary', 'see docs/model.md')}) on the "
+        log(f"\nShipped human model ({describe(model)}: {payload.get('summary', 'see docs/model.md')}) on the "
             f"{len(reference)} real trials: {result['instances']} instances, NLL exact {result['nll_exact']:.3f}, "
             f"IS {_score(result['nll_is'])}, naive {result['nll_naive']:.3f} nats (the authors' model: -12.717)")
         calibration = payload.get("calibration") or {}

@@ -20,6 +20,11 @@ fold. Several cross-validation folders are candidate recipes: the recipe is chos
 likelihood (the best uncalibrated out-of-fold exact NLL), then its calibration by the rule above
 (coverage is a property the calibration fixes, not a reason to prefer a worse recipe).
 
+With a **companion** model (``calibrate --companion authors:PATH``: the authors' published model,
+trained on 1105 real trials and none of these), the calibrated model is last mixed with it,
+``w · calibrated + (1 - w) · companion`` (:class:`~trafficweaving.model.mixture.Mixture`), ``w`` from
+:data:`MIX_WEIGHTS` by the same rule (1: no mixture), out-of-fold like the rest.
+
 That choice is made on the same out-of-fold predictions it is scored on, a small optimism. The
 nested estimate (:func:`calibrate_nested`, ``calibrate --nested``) removes it: each outer fold's
 recipe, steps and calibration are chosen on its inner folds alone, as a new trial would meet them.
@@ -39,12 +44,17 @@ import torch
 
 from ..data.trials import TrialSet
 from .crossval import out_of_fold_models
+from .cvae import CVAE
 from .exemplars import build_exemplars
 from .evaluate import evaluate
 from .metrics import InstanceMetrics, evaluate_instances
+from .mixture import Mixture
 
 TEMPERATURES = (1.0, 2.0, 5.0)
 SCALES = (1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0)
+MIX_WEIGHTS = (0.95, 0.9, 0.8, 0.7, 0.5)
+"""Weights of the calibrated model in its mixture with a companion, tried after the calibration
+(1, no mixture, is the calibration's own row)."""
 COVERAGE_BAND = (0.85, 0.95)
 """Accepted coverage of the nominal 90 % position interval 1.5 s ahead, per direction."""
 
@@ -57,7 +67,8 @@ def scale_of(row: dict) -> tuple[float, float]:
 @dataclass
 class Calibration:
     """``grid``: one dict per setting of the chosen candidate (``candidate`` index into the fold
-    folders, ``latent_temperature``, ``output_scale`` ``{"x", "y"}``, ``nll_exact``, ``nll_exact_by_direction``,
+    folders, ``latent_temperature``, ``output_scale`` ``{"x", "y"}``, ``mixture_weight`` (1: no
+    companion), ``nll_exact``, ``nll_exact_by_direction``,
     ``coverage_90`` ``{"x", "y"}`` at 1.5 s, ``min_ade_m``), out-of-fold; ``chosen``: its index;
     ``candidates_nll_exact``: every candidate's uncalibrated out-of-fold NLL; ``nested``: the
     nested estimate (:func:`calibrate_nested`) or None."""
@@ -96,34 +107,58 @@ def _direction_scale(rows: list[dict], direction: str) -> float:
     return best["output_scale"][direction]
 
 
+def calibrated(model: CVAE, temperature: float, scale: tuple[float, float], companion: CVAE | None = None,
+               weight: float = 1.0) -> CVAE | Mixture:
+    """A copy of ``model`` calibrated with ``temperature`` and ``scale`` (x, y), mixed with
+    ``companion`` at ``weight`` when that is below 1."""
+    model = copy.deepcopy(model).set_calibration(temperature, scale)
+    return model if weight >= 1.0 else Mixture([model, companion], [weight, 1.0 - weight])
+
+
 def _scored(pairs: list, trials: TrialSet, temperature: float, scale: tuple[float, float], samples: int,
-            seed: int) -> InstanceMetrics:
-    """The instances of every ``(model, held-out trial ids)`` of ``pairs``, each scored by a copy of
-    its model calibrated with ``temperature`` and ``scale`` (x, y). A copy: models sent to pool workers
+            seed: int, companion: CVAE | None = None, weight: float = 1.0) -> InstanceMetrics:
+    """The instances of every ``(model, held-out trial ids)`` of ``pairs``, each scored by
+    :func:`calibrated` (a copy of its model, mixed with ``companion`` at ``weight``). A copy: models sent to pool workers
     arrive in memory shared between the workers (torch's multiprocessing pickler), so calibrating
     them in place would let concurrent grid points overwrite each other's setting."""
     parts = []
     for model, held in pairs:
         fold = trials.subset(np.flatnonzero(np.isin(trials.trial_ids, held)))
-        calibrated = copy.deepcopy(model).set_calibration(temperature, scale)
-        parts.append(evaluate_instances(calibrated, fold, build_exemplars(fold),
+        parts.append(evaluate_instances(calibrated(model, temperature, scale, companion, weight), fold, build_exemplars(fold),
                                         samples=samples, ade_samples=20, seed=seed))
     return InstanceMetrics.concatenate(parts)
 
 
-def _row(candidate: int, temperature: float, scale: tuple[float, float], metrics: InstanceMetrics) -> dict:
+def _row(candidate: int, temperature: float, scale: tuple[float, float], metrics: InstanceMetrics,
+         weight: float = 1.0) -> dict:
     s = metrics.summary()
     return {"candidate": candidate, "latent_temperature": temperature, "output_scale": dict(zip(("x", "y"), scale)),
+            "mixture_weight": weight,
             "nll_exact": s["nll_exact"],
             "nll_exact_by_direction": s["nll_exact_by_direction"],
             "coverage_90": {d: s["coverage"][d]["1.5"]["90"] for d in ("x", "y")}, "min_ade_m": s["min_ade_m"]}
 
 
 def _score_job(job: tuple) -> dict:
-    """One grid point, ``(candidate, temperature, scale, pairs, trials, samples, seed)``, as a row."""
+    """One grid point, ``(candidate, temperature, scale, pairs, trials, samples, seed, companion,
+    weight)``, as a row."""
     torch.set_num_threads(1)
-    c, temperature, scale, pairs, trials, samples, seed = job
-    return _row(c, temperature, scale, _scored(pairs, trials, temperature, scale, samples, seed))
+    c, temperature, scale, pairs, trials, samples, seed, companion, weight = job
+    return _row(c, temperature, scale, _scored(pairs, trials, temperature, scale, samples, seed, companion, weight),
+                weight)
+
+
+def _scored_rows(candidate: int, pairs: list, trials: TrialSet, settings: list, samples: int, seed: int, log,
+                 pool: Executor | None, companion: CVAE | None = None):
+    """Rows of ``settings`` ``[(temperature, scale, weight)]`` of one candidate, scored in ``pool``."""
+    jobs = [(candidate, t, scale, pairs, trials, samples, seed, companion, w) for t, scale, w in settings]
+    for row in (pool.map(_score_job, jobs) if pool is not None else map(_score_job, jobs)):
+        scale = row["output_scale"]
+        mixed = f", mixture weight {row['mixture_weight']:g}" if row["mixture_weight"] < 1 else ""
+        log(f"candidate {candidate + 1}, temperature {row['latent_temperature']:g}, scale x {scale['x']:g} "
+            f"y {scale['y']:g}{mixed}: NLL {row['nll_exact']:.2f}, 90 % coverage at 1.5 s x "
+            f"{100 * row['coverage_90']['x']:.0f} %, y {100 * row['coverage_90']['y']:.0f} %")
+        yield row
 
 
 def _grid(candidate: int, pairs: list, trials: TrialSet, temperatures, scales, samples: int, seed: int, log,
@@ -132,13 +167,8 @@ def _grid(candidate: int, pairs: list, trials: TrialSet, temperatures, scales, s
     processes (or here): every (temperature, scale) with the scale in both directions, then per
     temperature the per-direction choice (:func:`_direction_scale`) where it differs."""
     def scored(settings):
-        jobs = [(candidate, temperature, scale, pairs, trials, samples, seed) for temperature, scale in settings]
-        for row in (pool.map(_score_job, jobs) if pool is not None else map(_score_job, jobs)):
-            scale = row["output_scale"]
-            log(f"candidate {candidate + 1}, temperature {row['latent_temperature']:g}, scale x {scale['x']:g} "
-                f"y {scale['y']:g}: NLL {row['nll_exact']:.2f}, 90 % coverage at 1.5 s x "
-                f"{100 * row['coverage_90']['x']:.0f} %, y {100 * row['coverage_90']['y']:.0f} %")
-            yield row
+        return _scored_rows(candidate, pairs, trials, [(t, scale, 1.0) for t, scale in settings], samples, seed, log,
+                            pool)
 
     grid = list(scored([(t, (s, s)) for t in temperatures for s in scales]))
     per_direction = []
@@ -160,31 +190,44 @@ def _uncalibrated_nll(pairs: list, trials: TrialSet) -> float:
 
 
 def _search(candidates: list[list], trials: TrialSet, temperatures, scales, samples: int, seed: int, log,
-            pool: Executor | None) -> tuple[list[float], list[dict], int]:
+            pool: Executor | None, companion: CVAE | None = None,
+            weights=MIX_WEIGHTS) -> tuple[list[float], list[dict], int]:
     """The recipe by likelihood, then its calibration by coverage: the candidate (a list of
     ``(model, held-out ids)``) with the best uncalibrated out-of-fold exact NLL, and its grid and
-    chosen setting (:func:`_choose`). Returns every candidate's NLL, the grid, the chosen row."""
+    chosen setting (:func:`_choose`); with a ``companion``, then the mixture weight among
+    ``weights`` and 1 by the same rule, the calibration fixed. Returns every candidate's NLL, the
+    grid (mixture rows last), the chosen row."""
     scores = [_uncalibrated_nll(pairs, trials) for pairs in candidates]
     best = int(np.argmin(scores))
     if len(candidates) > 1:
         log("uncalibrated out-of-fold NLL of the candidates: " + ", ".join(f"{v:.2f}" for v in scores)
             + f"; chosen: candidate {best + 1}")
     grid = _grid(best, candidates[best], trials, temperatures, scales, samples, seed, log, pool)
-    return scores, grid, _choose(grid)
+    chosen = _choose(grid)
+    if companion is None:
+        return scores, grid, chosen
+    pick = grid[chosen]
+    settings = [(pick["latent_temperature"], scale_of(pick), w) for w in weights]
+    mixed = list(_scored_rows(best, candidates[best], trials, settings, samples, seed, log, pool, companion))
+    options = [pick, *mixed]
+    return scores, grid + mixed, [chosen, *range(len(grid), len(grid) + len(mixed))][_choose(options)]
 
 
 def calibrate(trials: TrialSet, folds: str | list, temperatures=TEMPERATURES, scales=SCALES, samples: int = 100,
-              seed: int = 0, log: Callable[[str], None] = print, nested: bool = False, workers: int = 1) -> Calibration:
+              seed: int = 0, log: Callable[[str], None] = print, nested: bool = False, workers: int = 1,
+              companion: CVAE | None = None, weights=MIX_WEIGHTS) -> Calibration:
     """Choose a candidate and its calibration on the out-of-fold models in ``folds`` (a folder
     written by ``crossval --out`` on ``trials``, or a list of them: candidate recipes; module
-    docstring). With ``nested``, also :func:`calibrate_nested`. ``workers`` > 1 scores the grid in
-    that many processes."""
+    docstring), and with a ``companion`` (a model not trained on ``trials``) the weight of the
+    mixture with it among ``weights`` and 1. With ``nested``, also :func:`calibrate_nested`.
+    ``workers`` > 1 scores the grid in that many processes."""
     folders = [folds] if isinstance(folds, (str, Path)) else list(folds)
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) if workers > 1 else None
     try:
         scores, grid, chosen = _search([out_of_fold_models(f) for f in folders], trials, temperatures, scales, samples,
-                                       seed, log, pool)
-        estimate = calibrate_nested(trials, folders, temperatures, scales, samples, seed, log, pool) if nested else None
+                                       seed, log, pool, companion, weights)
+        estimate = (calibrate_nested(trials, folders, temperatures, scales, samples, seed, log, pool, companion, weights)
+                    if nested else None)
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
@@ -192,7 +235,8 @@ def calibrate(trials: TrialSet, folds: str | list, temperatures=TEMPERATURES, sc
 
 
 def calibrate_nested(trials: TrialSet, folders: list, temperatures=TEMPERATURES, scales=SCALES, samples: int = 100,
-                     seed: int = 0, log: Callable[[str], None] = print, pool: Executor | None = None) -> dict:
+                     seed: int = 0, log: Callable[[str], None] = print, pool: Executor | None = None,
+                     companion: CVAE | None = None, weights=MIX_WEIGHTS) -> dict:
     """The nested estimate of choosing a candidate recipe and its calibration: for each outer fold
     K, the choice of :func:`calibrate` made on the inner out-of-fold models of K alone
     (``FOLDER/nested/fold_K/fold_J.pt``, written by ``crossval --nested --out``: trained without
@@ -205,16 +249,18 @@ def calibrate_nested(trials: TrialSet, folders: list, temperatures=TEMPERATURES,
     parts, per_fold = [], []
     for k in range(len(held)):
         inner = [out_of_fold_models(Path(f) / "nested" / f"fold_{k + 1}") for f in folders]
-        scores, grid, chosen = _search(inner, trials, temperatures, scales, samples, seed, lambda _: None, pool)
+        scores, grid, chosen = _search(inner, trials, temperatures, scales, samples, seed, lambda _: None, pool,
+                                       companion, weights)
         pick = grid[chosen]
-        c, temperature, scale = pick["candidate"], pick["latent_temperature"], scale_of(pick)
-        metrics = _scored([(outer[c][k], held[k])], trials, temperature, scale, samples, seed)
+        c, temperature, scale, weight = pick["candidate"], pick["latent_temperature"], scale_of(pick), pick["mixture_weight"]
+        metrics = _scored([(outer[c][k], held[k])], trials, temperature, scale, samples, seed, companion, weight)
         parts.append(metrics)
-        row = _row(c, temperature, scale, metrics)
+        row = _row(c, temperature, scale, metrics, weight)
         per_fold.append({**row, "instances": len(metrics),
                          "inner": {"candidates_nll_exact": scores, **{k: pick[k] for k in ("nll_exact", "coverage_90")}}})
         log(f"outer fold {k + 1}: chose {'candidate ' + str(c + 1) + ', ' if len(folders) > 1 else ''}temperature "
-            f"{temperature:g}, scale x {scale[0]:g} y {scale[1]:g} on its inner folds; held-out NLL {row['nll_exact']:.2f} "
+            f"{temperature:g}, scale x {scale[0]:g} y {scale[1]:g}"
+            f"{f', mixture weight {weight:g}' if companion is not None else ''} on its inner folds; held-out NLL {row['nll_exact']:.2f} "
             f"(x {row['nll_exact_by_direction']['x']:.2f}, y {row['nll_exact_by_direction']['y']:.2f}), 90 % coverage "
             f"at 1.5 s x {100 * row['coverage_90']['x']:.0f} %, y {100 * row['coverage_90']['y']:.0f} %")
     total = _row(-1, float("nan"), (float("nan"), float("nan")), InstanceMetrics.concatenate(parts))

@@ -1,8 +1,10 @@
 """Model files: saving and loading checkpoints, and resolving ``--model`` specifications.
 
 A checkpoint is a ``torch.save`` dictionary readable with ``weights_only=True`` (no pickled code):
-``format``, ``version`` (4), ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
-and standardisation buffers), ``tensor_sha256`` (a SHA-256 of every tensor in the file, see
+``format``, ``version`` (5), ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
+and standardisation buffers), for a :class:`~trafficweaving.model.mixture.Mixture` ``mixture``
+(``weights``, one per component, and ``components``: the ``config`` and ``state_dict`` of every
+component after the first, which is the file's own model), ``tensor_sha256`` (a SHA-256 of every tensor in the file, see
 :func:`tensor_digest`), ``data_fingerprint``, ``step``, ``history`` (validation NLL by step) and, in
 training checkpoints, ``train_config``, ``optimizer`` and ``rng`` for resuming.
 
@@ -30,13 +32,14 @@ from ..atomic import atomic_write
 from ..errors import InputError
 from .cvae import CVAE, ROBOT_FUTURES, CVAEConfig
 from .gmm import HOLD_MIN_SIGMA, LOG_SIGMA_CLIP
+from .mixture import Mixture
 
 FORMAT = "trafficweaving-cvae"
-VERSION = 4
+VERSION = 5
 """2: adds ``tensor_sha256`` (version 1 files, without it, are refused); 3: the output scale no
-longer widens the hold modes; 4: one output scale per direction. Older files are read with the
-same density (:func:`upgrade_state`)."""
-READABLE_VERSIONS = (2, 3, 4)
+longer widens the hold modes; 4: one output scale per direction; 5: mixtures. Older files are read
+with the same density (:func:`upgrade_state`)."""
+READABLE_VERSIONS = (2, 3, 4, 5)
 HASH_FIELD = "tensor_sha256"
 SHIPPED_MODELS = {  # --model name: file in the package (docs/model.md, "The shipped models")
     "default": "default_cvae.pt",  # the authors' real-data model with hold modes, fine-tuned on the 30 real trials
@@ -122,14 +125,22 @@ def write_payload(path: str | Path, payload: dict) -> None:
         f.write(buffer.getvalue())
 
 
-RESERVED = ("format", "version", "config", "state_dict", HASH_FIELD)
+RESERVED = ("format", "version", "config", "state_dict", "mixture", HASH_FIELD)
 """Fields :func:`save_checkpoint` writes itself (given ones are replaced: they describe the model)."""
 
 
-def save_checkpoint(path: str | Path, model: CVAE, **fields) -> None:
+def _model_fields(model: CVAE) -> dict:
+    return {"config": model.config.to_dict(), "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
+
+
+def save_checkpoint(path: str | Path, model: CVAE | Mixture, **fields) -> None:
     """Write ``model`` and extra ``fields`` (step, history, data_fingerprint, optimizer, ...) atomically."""
-    payload = {"format": FORMAT, "version": VERSION, "config": model.config.to_dict(),
-               "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+    mixture = {}
+    if isinstance(model, Mixture):
+        mixture = {"mixture": {"weights": model.weights,
+                               "components": [_model_fields(c) for c in model.components[1:]]}}
+        model = model.components[0]
+    payload = {"format": FORMAT, "version": VERSION, **_model_fields(model), **mixture,
                **{k: v for k, v in fields.items() if k not in RESERVED}}
     write_payload(path, payload)
 
@@ -292,8 +303,30 @@ def check_tensors(state: dict, expected: dict, path: str | Path, label=lambda na
                              f"(expected {POSITIVE_BUFFERS[name]})")
 
 
-def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
-    """Build the model a checkpoint describes and load its weights, checking every tensor."""
+def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE | Mixture:
+    """Build the model a checkpoint describes (a :class:`Mixture` where it has ``mixture``) and load
+    its weights, checking every tensor."""
+    model = _cvae_from_checkpoint(payload, path)
+    if "mixture" not in payload:
+        return model
+    mixture = payload["mixture"]
+    components = mixture.get("components") if isinstance(mixture, dict) else None
+    weights = mixture.get("weights") if isinstance(mixture, dict) else None
+    if not (_is_list_of(components, lambda c: isinstance(c, dict)) and components
+            and _is_list_of(weights, _is_number) and len(weights) == len(components) + 1
+            and all(math.isfinite(w) and w > 0 for w in weights)):
+        raise InputError(f"{path}: checkpoint field mixture is not a mixture (expected weights, positive numbers, one per "
+                         f"component, and components, a config and state_dict for each after the first; {WRITTEN_BY_US})")
+    others = [_cvae_from_checkpoint({**c, "version": payload["version"]}, f"{path} (mixture component {k + 2})")
+              for k, c in enumerate(components)]
+    try:
+        return Mixture([model, *others], weights).eval()
+    except ValueError as exc:
+        raise InputError(f"{path}: {exc}") from None
+
+
+def _cvae_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
+    """The CVAE of a checkpoint's (or mixture component's) ``config`` and ``state_dict``."""
     model = CVAE(config_from_checkpoint(payload, path))
     expected = model.state_dict()
     state = payload.get("state_dict")
@@ -335,7 +368,7 @@ def upgrade_state(state: dict, version: int) -> dict:
     return upgraded
 
 
-def _read(path: str | Path) -> tuple[dict, CVAE]:
+def _read(path: str | Path) -> tuple[dict, CVAE | Mixture]:
     """The validated checkpoint dictionary and its model (see :func:`read_checkpoint`)."""
     path = Path(path)
     if path.is_dir():
@@ -372,7 +405,7 @@ def read_checkpoint(path: str | Path) -> dict:
     return _read(path)[0]
 
 
-def load_checkpoint(path: str | Path) -> tuple[CVAE, dict]:
+def load_checkpoint(path: str | Path) -> tuple[CVAE | Mixture, dict]:
     """The model of a checkpoint file (evaluation mode) and the checkpoint dictionary."""
     payload, model = _read(path)
     return model, payload
@@ -393,7 +426,7 @@ def model_path(spec: str) -> Path:
     return shipped_model_path(spec) if spec in SHIPPED_MODELS else Path(spec)
 
 
-def load_model(spec: str, device: torch.device | str = "cpu") -> CVAE:
+def load_model(spec: str, device: torch.device | str = "cpu") -> CVAE | Mixture:
     """Resolve a ``--model`` value: a shipped model's name (``default``, ``simulated-real``),
     ``authors:PATH`` or a checkpoint path."""
     if spec in SHIPPED_MODELS:

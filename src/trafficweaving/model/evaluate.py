@@ -9,6 +9,9 @@ units (nats per exemplar for the 15×2 accelerations in m/s²).
   the 15 accelerations of one direction; the two do not add up to the exact NLL, which also
   scores how the directions go together).
 
+A :class:`~trafficweaving.model.mixture.Mixture` is scored component by component: each of its
+NLLs is ``-log Σ_c w_c exp(-NLL_c)`` (the importance-sampled one only when every component has q).
+
 The latent space is small (25 values), so ``p(y|x,z)`` is computed once for every value and the
 sampled estimators gather from it: the same estimates as decoding each sample, much cheaper.
 """
@@ -24,6 +27,7 @@ import torch
 from ..scenario import HORIZON
 from .cvae import CVAE
 from .exemplars import ExemplarSet, ExemplarTensors
+from .mixture import Mixture
 
 
 @dataclass
@@ -60,10 +64,25 @@ def _sampled_nll(log_weights: torch.Tensor, proposal_log: torch.Tensor, samples:
     return -(torch.logsumexp(picked, dim=1) - math.log(samples))
 
 
+def _mixed(parts: list[Evaluation], log_weights: np.ndarray) -> Evaluation:
+    """The NLLs of a mixture from its components' ``parts`` and log weights ``[C]``."""
+    def mix(arrays):
+        if any(a is None for a in arrays):
+            return None
+        stacked = np.stack(arrays)  # [C, E] or [C, E, 2]
+        w = log_weights.reshape(-1, *([1] * (stacked.ndim - 1)))
+        return -np.logaddexp.reduce(w - stacked, axis=0)
+    return Evaluation(mix([p.nll_exact for p in parts]), mix([p.nll_is for p in parts]),
+                      mix([p.nll_naive for p in parts]), mix([p.nll_direction for p in parts]))
+
+
 @torch.no_grad()
-def evaluate_tensors(model: CVAE, data: ExemplarTensors, samples: int = 50, seed: int = 0,
+def evaluate_tensors(model: CVAE | Mixture, data: ExemplarTensors, samples: int = 50, seed: int = 0,
                      batch_size: int = 512, index: torch.Tensor | None = None) -> Evaluation:
     """Evaluate ``model`` (evaluation mode) on standardised exemplars (all, or ``index``)."""
+    if isinstance(model, Mixture):
+        return _mixed([evaluate_tensors(c, data, samples, seed, batch_size, index) for c in model.components],
+                      model.log_weights.double().cpu().numpy())
     model.eval()
     generator = torch.Generator().manual_seed(seed)
     index = torch.arange(len(data), device=data.t.device) if index is None else index
@@ -88,7 +107,7 @@ def evaluate_tensors(model: CVAE, data: ExemplarTensors, samples: int = 50, seed
     return Evaluation(to_numpy(exact), to_numpy(importance) if importance else None, to_numpy(naive), by_direction)
 
 
-def evaluate(model: CVAE, exemplars: ExemplarSet, samples: int = 50, seed: int = 0, batch_size: int = 512) -> Evaluation:
+def evaluate(model: CVAE | Mixture, exemplars: ExemplarSet, samples: int = 50, seed: int = 0, batch_size: int = 512) -> Evaluation:
     """Evaluate ``model`` on every exemplar of ``exemplars`` (physical units, standardised with the
     model's own statistics, on the model's device)."""
     return evaluate_tensors(model, exemplars.standardised(model), samples, seed, batch_size)

@@ -47,6 +47,7 @@ from ..scenario import DT, HORIZON
 from .cvae import ACCEL, CVAE
 from .evaluate import Evaluation, evaluate_tensors
 from .exemplars import ExemplarSet, ExemplarTensors
+from .mixture import Mixture
 
 DIRECTIONS = ("x", "y")
 HORIZON_STEPS = (5, 10, HORIZON)
@@ -105,7 +106,7 @@ def held_fraction(present: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def sampled_metrics(model: CVAE, exemplars: ExemplarSet, index: np.ndarray, samples: int = 100,
+def sampled_metrics(model: CVAE | Mixture, exemplars: ExemplarSet, index: np.ndarray, samples: int = 100,
                     ade_samples: int = 20, levels: tuple[float, ...] = LEVELS, seed: int = 0,
                     data: ExemplarTensors | None = None) -> SampledMetrics:
     """Coverage at ``levels`` over ``samples`` sampled futures and minADE/minFDE over the first
@@ -261,7 +262,7 @@ class InstanceMetrics:
             pq.write_table(self.to_table(metadata), f, compression="zstd")
 
 
-def evaluate_instances(model: CVAE, trials: TrialSet, exemplars: ExemplarSet, samples: int = 100,
+def evaluate_instances(model: CVAE | Mixture, trials: TrialSet, exemplars: ExemplarSet, samples: int = 100,
                        ade_samples: int = 20, levels: tuple[float, ...] = LEVELS, max_sampled: int | None = None,
                        nll_samples: int = 50, seed: int = 0) -> InstanceMetrics:
     """Every metric of every exemplar of ``exemplars = build_exemplars(trials)``: the NLLs

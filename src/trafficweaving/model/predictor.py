@@ -20,7 +20,8 @@ from .. import validate
 from ..errors import InputError
 from ..scenario import HORIZON
 from .cvae import ACCEL, CVAE, STATE_DIM
-from .sampler import BatchedRollout
+from .mixture import Mixture
+from .sampler import rollout
 
 PRECISIONS = ("auto", "float32", "bfloat16")
 """Choices of :func:`resolve_precision`."""
@@ -52,7 +53,8 @@ def resolve_precision(precision: str, device: torch.device | str = "cpu") -> tor
 class Prediction:
     """``actions [n, B, 15, 2]`` sampled human accelerations ``[xdd, ydd]`` (m/s²) at steps
     t+1..t+15; ``latents [n, B]`` the joint latent value of each sample (0..Z-1, first latent
-    variable slowest); ``log_p_z [B, Z]`` the prior over latent values for each candidate."""
+    variable slowest; of a mixture: its (component, value) pairs, :attr:`~.mixture.Mixture.latent_offsets`);
+    ``log_p_z [B, Z]`` the prior over latent values for each candidate."""
 
     actions: torch.Tensor
     latents: torch.Tensor
@@ -60,7 +62,8 @@ class Prediction:
 
 
 class HumanPredictor:
-    """Samples human futures from a :class:`CVAE` (evaluation mode, on the model's device).
+    """Samples human futures from a :class:`CVAE` or a :class:`~trafficweaving.model.mixture.Mixture`
+    of them (evaluation mode, on the model's device).
 
     ``precision``: the dtype of the decoder's matrix multiplies for a float32 model (one of
     :data:`PRECISIONS`; a float64 model always runs in float64): ``float32`` samples the model
@@ -72,7 +75,7 @@ class HumanPredictor:
     :attr:`device` and :attr:`dtype` are the model's; tensors returned live there.
     """
 
-    def __init__(self, model: CVAE, precision: str = "float32", chunk_rows: int = 2048):
+    def __init__(self, model: CVAE | Mixture, precision: str = "float32", chunk_rows: int = 2048):
         if model.config.robot_future != "recorded":
             raise InputError(f"the model is conditioned on a {model.config.robot_future} of the robot's future (a driver "
                              f"model), so it cannot tell candidate robot futures apart (expected a model conditioned on "
@@ -81,7 +84,7 @@ class HumanPredictor:
         weights = next(model.parameters())
         self.device, self.dtype = weights.device, weights.dtype
         matmul_dtype = resolve_precision(precision, self.device) if self.dtype == torch.float32 else self.dtype
-        self.rollout = BatchedRollout(model, validate.integer("chunk_rows", chunk_rows, 1), matmul_dtype)
+        self.rollout = rollout(model, validate.integer("chunk_rows", chunk_rows, 1), matmul_dtype)
         self.context: dict | None = None
         self.candidates = 0
 
@@ -96,7 +99,7 @@ class HumanPredictor:
         ``t >= 4``; ``robot_futures [B, 15, 6]`` the robot's states at steps t+1..t+15 for each of
         ``B`` candidates. Arrays or tensors."""
         self.context = self._encode(history, robot_futures)
-        self.candidates = len(self.context["x_gates"])
+        self.candidates = len(self.context["log_p_joint"])
 
     def sample(self, candidates, n: int, generator: torch.Generator | None) -> torch.Tensor:
         """Human accelerations ``[n, len(candidates), 15, 2]`` (m/s², ``[xdd, ydd]`` at steps

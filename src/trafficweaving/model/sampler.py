@@ -28,6 +28,23 @@ from ..scenario import HORIZON
 from .cvae import CVAE, STATE_DIM
 from .lstm import FORGET_BIAS
 from .gmm import HOLD_MODES, LOG_SIGMA_CLIP, compose_hold_sample, split_uniform
+from .mixture import Mixture
+
+
+def _rows(context: dict, latents: torch.Tensor, candidates: torch.Tensor | None, generator: torch.Generator | None,
+          noise: tuple[torch.Tensor, torch.Tensor] | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The decoder rows of ``latents [n, C']``, row ``r`` = (sample ``r // C'``, candidate ``r % C'``):
+    their candidate indices ``[nC']``, uniforms ``[nC', 15]`` and normals ``[nC', 15, 2]`` (drawn
+    from ``generator`` unless ``noise`` gives them)."""
+    n, c_count = latents.shape
+    device, dtype = latents.device, context["log_p_joint"].dtype
+    cand = torch.arange(c_count, device=device) if candidates is None else candidates
+    if noise is None:
+        uniform = torch.rand((n * c_count, HORIZON), generator=generator, device=device, dtype=dtype)
+        normal = torch.randn((n * c_count, HORIZON, 2), generator=generator, device=device, dtype=dtype)
+    else:
+        uniform, normal = noise[0].reshape(-1, HORIZON), noise[1].reshape(-1, HORIZON, 2)
+    return cand.repeat(n), uniform, normal
 
 
 def _reorder_gates(w: torch.Tensor) -> torch.Tensor:
@@ -128,20 +145,18 @@ class BatchedRollout:
         candidates ``candidates [C']`` (default: all). ``noise`` optionally gives the uniforms
         ``[n, C', 15]`` and normals ``[n, C', 15, 2]`` (as :meth:`CVAE.sample_actions` takes them)."""
         n, c_count = latents.shape
-        device, dtype = latents.device, context["x_gates"].dtype
-        cand = torch.arange(c_count, device=device) if candidates is None else candidates
-        rows_cand = cand.repeat(n)  # row r = (sample r // C', candidate r % C')
-        rows_z = latents.reshape(-1)
-        if noise is None:
-            uniform = torch.rand((n * c_count, HORIZON), generator=generator, device=device, dtype=dtype)
-            normal = torch.randn((n * c_count, HORIZON, 2), generator=generator, device=device, dtype=dtype)
-        else:
-            uniform, normal = noise[0].reshape(-1, HORIZON), noise[1].reshape(-1, HORIZON, 2)
-        out = torch.empty((n * c_count, HORIZON, 2), device=device, dtype=dtype)
-        for start in range(0, n * c_count, self.chunk_rows):
+        rows_cand, uniform, normal = _rows(context, latents, candidates, generator, noise)
+        return self.decode_rows(context, rows_cand, latents.reshape(-1), uniform, normal).view(n, c_count, HORIZON, 2)
+
+    def decode_rows(self, context: dict, rows_cand: torch.Tensor, rows_z: torch.Tensor, uniform: torch.Tensor,
+                    normal: torch.Tensor) -> torch.Tensor:
+        """Actions ``[R, 15, 2]`` (standardised) of ``R`` decoder rows: candidate ``rows_cand [R]``,
+        latent value ``rows_z [R]``, uniforms ``[R, 15]`` and normals ``[R, 15, 2]``, in chunks."""
+        out = torch.empty((len(rows_cand), HORIZON, 2), device=rows_cand.device, dtype=context["x_gates"].dtype)
+        for start in range(0, len(rows_cand), self.chunk_rows):
             rows = slice(start, start + self.chunk_rows)
             out[rows] = self._decode_chunk(context, rows_cand[rows], rows_z[rows], uniform[rows], normal[rows])
-        return out.view(n, c_count, HORIZON, 2)
+        return out
 
     def _decode_chunk(self, ctx: dict, cand: torch.Tensor, z: torch.Tensor, uniform: torch.Tensor,
                       normal: torch.Tensor) -> torch.Tensor:
@@ -194,3 +209,51 @@ class BatchedRollout:
         correlated = normal.clone()
         correlated[:, 1:].mul_(torch.sqrt(1.0 - corr * corr)).addcmul_(corr, normal[:, :1])
         torch.addcmul(params[:, :2], sigma, correlated, out=out)
+
+
+class MixtureRollout:
+    """:class:`BatchedRollout` for a :class:`~trafficweaving.model.mixture.Mixture`, with the same
+    methods: a latent value is a (component, latent value) pair (the mixture's joint latent), each
+    row decoded by its component's rollout."""
+
+    def __init__(self, mixture: Mixture, chunk_rows: int = 2048, matmul_dtype: torch.dtype | None = None):
+        self.model = mixture.eval()
+        self.parts = [BatchedRollout(c, chunk_rows, matmul_dtype) for c in mixture.components]
+        self.matmul_dtype = self.parts[0].matmul_dtype
+        self.offsets = mixture.latent_offsets
+
+    @torch.no_grad()
+    def encode(self, history: torch.Tensor, robot_futures: torch.Tensor, present_action: torch.Tensor) -> dict:
+        """Each component's :meth:`BatchedRollout.encode` (``parts``) and the mixture's prior over
+        its joint latent values ``log_p_joint [C, Σ Z_c]``."""
+        parts = [p.encode(history, robot_futures, present_action) for p in self.parts]
+        log_w = self.model.log_weights.to(parts[0]["log_p_joint"].dtype)
+        return {"parts": parts, "log_p_joint": torch.cat([w + p["log_p_joint"] for w, p in zip(log_w, parts)], dim=-1)}
+
+    def sample_latents(self, context: dict, n: int, generator: torch.Generator | None, candidates: torch.Tensor | None = None) -> torch.Tensor:
+        """Joint latent values ``[n, C']`` of the mixture drawn for each candidate (all, or ``candidates``)."""
+        log_p = context["log_p_joint"] if candidates is None else context["log_p_joint"][candidates]
+        u = torch.rand((n, *log_p.shape), generator=generator, device=log_p.device, dtype=log_p.dtype)
+        return torch.argmax(log_p - torch.log(-torch.log(u.clamp_min(1e-20))), dim=-1)
+
+    @torch.no_grad()
+    def sample(self, context: dict, latents: torch.Tensor, candidates: torch.Tensor | None = None,
+               generator: torch.Generator | None = None,
+               noise: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """As :meth:`BatchedRollout.sample`, each row by the component its latent value belongs to."""
+        n, c_count = latents.shape
+        rows_cand, uniform, normal = _rows(context, latents, candidates, generator, noise)
+        rows_z = latents.reshape(-1)
+        out = torch.empty((len(rows_z), HORIZON, 2), device=rows_z.device, dtype=uniform.dtype)
+        for part, ctx, low, high in zip(self.parts, context["parts"], self.offsets, self.offsets[1:]):
+            rows = torch.nonzero((rows_z >= low) & (rows_z < high)).squeeze(1)
+            if len(rows):
+                out[rows] = part.decode_rows(ctx, rows_cand[rows], rows_z[rows] - low, uniform[rows], normal[rows])
+        return out.view(n, c_count, HORIZON, 2)
+
+
+def rollout(model: CVAE | Mixture, chunk_rows: int = 2048, matmul_dtype: torch.dtype | None = None):
+    """The batched rollout of ``model``: :class:`BatchedRollout` or, for a mixture, :class:`MixtureRollout`."""
+    if isinstance(model, Mixture):
+        return MixtureRollout(model, chunk_rows, matmul_dtype)
+    return BatchedRollout(model, chunk_rows, matmul_dtype)

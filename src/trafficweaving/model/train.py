@@ -28,6 +28,7 @@ from ..data.trials import TrialSet
 from ..errors import InputError
 from ..scenario import MIN_TRIAL_STEPS, STATE_NAMES
 from .checkpoint import model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
+from .mixture import Mixture
 from .cvae import CVAE, Batch, CVAEConfig
 from .evaluate import evaluate_tensors
 from .exemplars import ExemplarSet, build_exemplars, split_by_trial, state_statistics
@@ -252,7 +253,9 @@ def initial_model(init: str | Path, variant: str | None, robot_future: str | Non
     ``variant`` asks for it of a ``cvae`` model (:meth:`CVAE.with_hold_modes`), conditioned on
     ``robot_future`` when given (:attr:`CVAEConfig.robot_future`; the weights are kept, the
     training data then carries that future), calibration reset (fine-tuning changes the trained
-    model itself; calibration is redone afterwards). Another variant than ``variant`` (None: any)
+    model itself; calibration is redone afterwards). A :class:`~trafficweaving.model.mixture.Mixture`
+    (e.g. ``default``) starts from its first component, the one trained on real trials; its mixture
+    weight, like the calibration, is chosen again by ``calibrate``. Another variant than ``variant`` (None: any)
     is refused."""
     from .authors import load_authors_model
 
@@ -263,6 +266,8 @@ def initial_model(init: str | Path, variant: str | None, robot_future: str | Non
         model = model_from_checkpoint(payload, init)
     provenance = {"path": str(init), "variant": model.config.name, "step": int(payload.get("step", 0)),
                   **{k: payload[k] for k in ("data_fingerprint", "recipe", "data_command") if k in payload}}
+    if isinstance(model, Mixture):
+        model, provenance["mixture_component"] = model.components[0], 1
     if variant == "cvae-hold" and model.config.name == "cvae":
         model = model.with_hold_modes()
         provenance["upgraded_to"] = "cvae-hold"

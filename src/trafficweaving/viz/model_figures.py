@@ -25,7 +25,6 @@ def plot_predictions(model: CVAE, trials: TrialSet, picks: list[tuple[int, int, 
     ``t``, the other car's recorded future (the condition), the human's recorded future, and
     ``samples`` sampled human futures coloured by their latent value."""
     predictor = HumanPredictor(model)
-    cmap = colormaps["tab20"] if model.config.latent_values <= 20 else colormaps["turbo"]
     fig = Figure(figsize=(11, 2.3 * len(picks) + 0.6))
     axes = fig.subplots(len(picks), 1, squeeze=False)[:, 0]
     for ax, (i, agent, t) in zip(axes, picks):
@@ -35,13 +34,14 @@ def plot_predictions(model: CVAE, trials: TrialSet, picks: list[tuple[int, int, 
         history = np.stack([robot[: t + 1], human[: t + 1]], axis=1)
         prediction = predictor.predict(history, robot[None, t + 1:t + 1 + HORIZON], samples, seed)
         futures = future_states(torch.as_tensor(human[t]), prediction.actions[:, 0].double().cpu()).numpy()  # [n, 15, 6]
-        latents = prediction.latents[:, 0].cpu().numpy()
+        latents, values = prediction.latents[:, 0].cpu().numpy(), prediction.log_p_z.shape[-1]
+        cmap = colormaps["tab20"] if values <= 20 else colormaps["turbo"]
         x_ahead = np.concatenate([robot[t:t + 1 + HORIZON, 0], human[t:t + 1 + HORIZON, 0], futures[..., 0].ravel()])
         # the last 2 s of history and everything predicted
         x_behind = min(robot[max(t - 20, 0), 0], human[max(t - 20, 0), 0])
         draw_road(ax, (x_behind - 3, x_ahead.max() + 5), float(futures[..., 1].min()))
         for k in range(samples):
-            colour = cmap(latents[k] / max(model.config.latent_values - 1, 1))
+            colour = cmap(latents[k] / max(values - 1, 1))
             ax.plot(np.r_[human[t, 0], futures[k, :, 0]], np.r_[human[t, 1], futures[k, :, 1]], color=colour, lw=0.8, alpha=0.8)
         ax.plot(robot[: t + 1, 0], robot[: t + 1, 1], color="0.25", lw=2.2, label="other car (robot) history")
         ax.plot(robot[t:t + 1 + HORIZON, 0], robot[t:t + 1 + HORIZON, 1], color="0.25", lw=1.6, ls="--", label="robot future (condition)")

@@ -1,0 +1,106 @@
+"""A mixture of human models: ``p(y|x) = Σ_c w_c p_c(y|x)``.
+
+An ensemble of CVAEs trained from different starting points is one more calibration of the
+predictive distribution (docs/calibration.md): the shipped ``default`` mixes the model fine-tuned on
+the 30 real trials with the authors' published model, which saw 1105 real trials and keeps mass on
+driving that 30 trials do not show; the weight is chosen out-of-fold (``calibrate --companion``).
+
+Equivalently, the mixture is one CVAE whose latent variable is the pair (component, component's
+latent value): :attr:`latent_values` counts them, and a sample's latent value ``k`` is component
+``c``'s value ``k - offset_c``. The components share the standardisation (so one standardised
+batch serves all) and the conditioning on the robot's future; each keeps its own calibration.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import nn
+
+from ..scenario import HORIZON
+from .cvae import ACTION_DIM, CVAE, Batch
+
+
+class Mixture(nn.Module):
+    """Components ``[CVAE, ...]`` (at least two) with ``weights`` (positive, normalised here)."""
+
+    def __init__(self, components: Sequence[CVAE], weights: Sequence[float]):
+        super().__init__()
+        if len(components) < 2 or len(weights) != len(components):
+            raise ValueError(f"a mixture needs at least two components and one weight each, got {len(components)} "
+                             f"and {len(weights)}")
+        w = torch.as_tensor(weights, dtype=torch.float64)
+        if not (torch.isfinite(w).all() and (w > 0).all()):
+            raise ValueError(f"mixture weights must be positive and finite, got {w.tolist()}")
+        first = components[0]
+        for c in components[1:]:
+            if c.config.robot_future != first.config.robot_future:
+                raise ValueError(f"mixture components must condition on the same robot future, got "
+                                 f"{first.config.robot_future} and {c.config.robot_future}")
+            if not all(torch.allclose(getattr(c, n).double(), getattr(first, n).double())
+                       for n in ("feature_mean", "feature_std")):
+                raise ValueError("mixture components must share the standardisation (fine-tune one from the other)")
+        self.components = nn.ModuleList(components)
+        self.register_buffer("log_weights", torch.log(w / w.sum()))
+
+    @property
+    def weights(self) -> list[float]:
+        """The components' weights (sum 1)."""
+        return self.log_weights.double().exp().tolist()
+
+    @property
+    def config(self):
+        """The first component's :class:`~trafficweaving.model.cvae.CVAEConfig` (the conditioning and
+        standardisation every component shares)."""
+        return self.components[0].config
+
+    @property
+    def latent_offsets(self) -> list[int]:
+        """The first joint latent value of each component (then ``latent_values``)."""
+        sizes = [c.config.latent_values for c in self.components]
+        return [sum(sizes[:k]) for k in range(len(sizes) + 1)]
+
+    @property
+    def latent_values(self) -> int:
+        """The number of (component, latent value) pairs."""
+        return self.latent_offsets[-1]
+
+    # the shared standardisation
+    feature_mean = property(lambda self: self.components[0].feature_mean)
+    feature_std = property(lambda self: self.components[0].feature_std)
+    label_mean = property(lambda self: self.components[0].label_mean)
+    label_std = property(lambda self: self.components[0].label_std)
+
+    def states_to_standard(self, states: torch.Tensor) -> torch.Tensor:
+        return self.components[0].states_to_standard(states)
+
+    def actions_to_standard(self, actions: torch.Tensor) -> torch.Tensor:
+        return self.components[0].actions_to_standard(actions)
+
+    def actions_to_physical(self, actions: torch.Tensor) -> torch.Tensor:
+        return self.components[0].actions_to_physical(actions)
+
+    def situations(self, histories: torch.Tensor, robot_futures: torch.Tensor) -> Batch:
+        return self.components[0].situations(histories, robot_futures)
+
+    @torch.no_grad()
+    def sample_futures(self, batch: Batch, samples: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """``samples`` futures per situation ``[S, B, 15, 2]`` (standardised): each draws its
+        component by weight (one draw per sample, shared by the batch's situations), then a future
+        from that component (:meth:`CVAE.sample_futures`)."""
+        device = self.log_weights.device
+        which = torch.multinomial(self.log_weights.exp(), samples, replacement=True, generator=generator)
+        out = torch.empty((samples, len(batch.t), HORIZON, ACTION_DIM), dtype=batch.history.dtype, device=device)
+        for k, component in enumerate(self.components):
+            rows = torch.nonzero(which == k).squeeze(1)
+            if len(rows):
+                out[rows] = component.sample_futures(batch, len(rows), generator).to(out.dtype)
+        return out
+
+
+def describe(model: CVAE | Mixture) -> str:
+    """A model's variant for people: ``cvae-hold``, or ``mixture of cvae-hold (0.95), cvae (0.05)``."""
+    if isinstance(model, Mixture):
+        return "mixture of " + ", ".join(f"{c.config.name} ({w:.3g})" for c, w in zip(model.components, model.weights))
+    return model.config.name
