@@ -6,15 +6,17 @@ import pytest
 import torch
 
 from trafficweaving.dynamics import future_states, integrate_trapezoid
+from trafficweaving.errors import InputError
 from trafficweaving.model.constant_velocity import ConstantVelocityHuman
 from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.model.predictor import HumanPredictor
 from trafficweaving.model.sampler import BatchedRollout
-from trafficweaving.planning.candidates import (ACCELERATIONS, MOTIONS, N_ACTIONS, N_CANDIDATES, WINDOWS, Action,
+from trafficweaving.planning.candidates import (ACCELERATIONS, MOTIONS, N_ACTIONS, N_CANDIDATES, SETTLING_TIME, WINDOWS, Action,
                                                 action_sequences, robot_candidates, rollout)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
-from trafficweaving.planning.planner import SCREENING_SAMPLES, Budget, Planner, example_history
+from trafficweaving.planning.planner import (MODES, SCREENING_SAMPLES, Budget, Mode, Planner, example_history,
+                                             risk_cost, turn_backs)
 from trafficweaving.planning.steering import optimal_time, steer, steering_cost
 from trafficweaving.scenario import DT, HORIZON, LANE_CENTRE_Y
 from trafficweaving.sim.world import World
@@ -260,6 +262,37 @@ def test_budget_counts_are_configurable():
     assert plan.futures == 4096 * 2 + 5 * 7 and len(plan.finalists) == 5 and plan.second_stage_samples == 7
 
 
+def test_turning_back_from_a_lane_change_costs_and_setting_out_does_not():
+    """HISTORY_TOY's robot is in the right lane; window 0 sets out for the left lane."""
+    fixed = Action.of(0.0, "left").index
+    plain = Planner(ToyHuman(), seed=0).plan(HISTORY_TOY, fixed, toy_cost)
+    committed = Planner(ToyHuman(), seed=0, mode=Mode(turn_back_cost=1000.0)).plan(HISTORY_TOY, fixed, toy_cost)
+    backs = turn_backs(plain.candidates.actions, "right")  # the toy cost ignores the lane
+    assert backs.max() == 2 and (backs == 0).sum() == N_CANDIDATES // 2 ** (WINDOWS - 1)  # left, right, left, right, left
+    np.testing.assert_allclose(committed.first_stage_cost - plain.first_stage_cost, 1000.0 * backs, atol=1e-3)
+    assert backs[committed.index] == 0 and _accelerates_throughout(committed)
+    lanes = lambda *names: [Action.of(0.0, n).index for n in names]  # noqa: E731
+    sequences = np.array([lanes("right", "left", "left", "left", "left"), lanes("left", "right", "left", "right", "left"),
+                          lanes("right", "right", "right", "right", "right"), lanes("left", "left", "right", "right", "right")])
+    assert turn_backs(sequences, "right").tolist() == [0, 2, 0, 1]
+
+
+def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():
+    scores = torch.tensor([[1.0, 10.0], [2.0, 20.0], [3.0, 30.0], [4.0, 40.0]])
+    assert risk_cost(scores, 1.0).tolist() == [2.5, 25.0] and risk_cost(scores, 0.5).tolist() == [3.5, 35.0]
+    assert risk_cost(scores, 0.1).tolist() == [4.0, 40.0]
+    budget = Budget(8, 8, 8)
+    plain = Planner(ToyHuman(), seed=0).plan(HISTORY_TOY, 0, toy_cost, budget=budget)
+    cautious = Planner(ToyHuman(), seed=0, mode=Mode(risk=0.25)).plan(HISTORY_TOY, 0, toy_cost, budget=budget)
+    assert np.all(cautious.first_stage_cost >= plain.first_stage_cost - 1e-6)
+    assert (cautious.first_stage_cost > plain.first_stage_cost + 1.0).mean() > 0.9
+    for bad in (dict(risk=0.0), dict(risk=1.5), dict(turn_back_cost=-1.0), dict(turn_back_cost=float("inf"))):
+        with pytest.raises(InputError, match="a planner mode needs"):
+            Mode(**bad)
+    with pytest.raises(InputError, match="mode must be a planner Mode"):
+        Planner(ToyHuman(), mode="paper")
+
+
 # ---------------------------------------------------------------- deadlines and MPC
 def _history(steps=10):
     robot = np.array([-120.0, RIGHT, 29.0, 0.0, 0.0, 0.0])
@@ -333,6 +366,29 @@ def test_mpc_holds_then_replans_every_window_with_the_fixed_first_window():
     np.testing.assert_allclose(robot[12:14, 4], executed[:2, 4])
 
 
+def test_settled_steering_comes_to_rest_on_the_lane_centre_where_the_papers_keeps_chattering():
+    """Executed as the world executes a plan (one acceleration a step, trapezoid rule), the paper's
+    steering re-solves the sampling's residue on the lane centre every window into ±0.7 m/s²; with
+    lateral manoeuvres of at least SETTLING_TIME the same lane change comes to rest."""
+    from trafficweaving.dynamics import trapezoid_step
+
+    def executed(motion, windows=30):
+        state, accelerations = np.array([-300.0, RIGHT, 30.0, 0.0, 0.0, 0.0]), []
+        for _ in range(windows):
+            for planned in rollout(state, np.array([[Action.of(0.0, "left").index]]), motion)[0]:
+                y, yd = trapezoid_step(state[1], state[3], state[5], planned[5])
+                state = np.array([planned[0], y, planned[2], yd, planned[4], planned[5]])
+                accelerations.append(planned[5])
+        return np.array(accelerations), state
+
+    paper, _ = executed(MOTIONS["paper"])
+    settled, end = executed(MOTIONS["settled"])
+    assert np.abs(paper[-30:]).max() > 0.5 and np.abs(settled[-30:]).max() < 0.01
+    assert abs(end[1] - LANE_CENTRE_Y["left"]) < 0.01 and abs(end[3]) < 0.01
+    assert np.abs(settled).max() == pytest.approx(np.abs(paper[:30]).max(), rel=0.1)  # the same lane change
+    assert float(optimal_time(np.array([LEFT + 0.01, 0.0, 0.0]), np.array(LEFT), min_time=SETTLING_TIME)) >= SETTLING_TIME
+
+
 def test_comfort_candidates_keep_to_the_comfort_limits_from_every_state_they_reach_and_the_paper_ones_do_not():
     from trafficweaving.sim.metrics import comfort_violations  # the closed loop's own definition
 
@@ -360,7 +416,7 @@ def test_a_comfort_planner_drives_the_closed_loop_within_the_limits():
     from trafficweaving.sim.metrics import comfort_violations
 
     torch.manual_seed(0)
-    policy = MPCPolicy(Planner(HumanPredictor(CVAE()), motion=MOTIONS["comfort"]), budget=Budget(1, 2, 2))
+    policy = MPCPolicy(Planner(HumanPredictor(CVAE()), mode=MODES["comfort"]), budget=Budget(1, 2, 2))
     world = World(_history(1))
     policy.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
     for _ in range(40):

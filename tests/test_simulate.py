@@ -171,6 +171,18 @@ def test_lane_reversals_count_turns_back_towards_the_start_lane():
     assert lane_reversals(LEFT + np.cumsum(chatter) * DT, chatter) == 5
 
 
+def test_lateral_swings_count_sign_changes_of_the_lateral_acceleration_above_the_threshold():
+    from trafficweaving.planning.candidates import MOTIONS, Action, rollout
+    from trafficweaving.sim.metrics import SWING_ACCEL, lateral_swings
+
+    change = rollout(np.array([START_X, RIGHT, 30.0, 0.0, 0.0, 0.0]), np.array([[Action.of(0.0, "left").index] * 15]),
+                     MOTIONS["settled"])[0, :, 5]  # one steady lane change
+    assert lateral_swings(change) == 1
+    chatter = np.tile([0.7, -0.7, 0.0], 10)
+    assert lateral_swings(np.concatenate([change, chatter])) == 1 + 20
+    assert lateral_swings(np.concatenate([change, 0.9 * SWING_ACCEL * np.sign(chatter)])) == 1  # below the threshold
+
+
 # ---------------------------------------------------------------- aggregates
 def test_wilson_interval_ends_and_middle():
     for n in (1, 7, 100):

@@ -24,13 +24,64 @@ import torch
 from .. import validate
 from ..dynamics import future_states
 from ..errors import InputError
-from ..scenario import DT, HORIZON, LANE_CENTRE_Y, STATE_NAMES
+from ..scenario import DT, HORIZON, LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
 from .candidates import MOTIONS, N_ACTIONS, N_CANDIDATES, WINDOWS, Candidates, Motion, robot_candidates
 from .costs import Cost
 
 
 SCREENING_SAMPLES = 32
 """Real-time mode: human futures per window-1 action shared by stage 1's candidates."""
+
+
+@dataclass(frozen=True)
+class Mode:
+    """How the planner drives (docs/closed_loop.md). ``motion``: how its candidates move the robot
+    (:data:`~.candidates.MOTIONS`). ``turn_back_cost``: added to a candidate's cost for every window
+    that turns back to the lane the robot is in after the window before it set out for the other
+    lane, window 0 (the one being executed) included (:func:`turn_backs`): once a lane change has
+    started, the plan keeps to it unless turning back is better by more than that; setting out is
+    free (0: the paper's).
+    ``risk``: the share α of a candidate's sampled human futures whose costs judge it, the worst
+    ones (CVaR_α, :func:`risk_cost`; 1: the expected cost, the paper's)."""
+
+    motion: Motion = MOTIONS["paper"]
+    turn_back_cost: float = 0.0
+    risk: float = 1.0
+
+    def __post_init__(self):
+        if not (self.turn_back_cost >= 0 and np.isfinite(self.turn_back_cost)) or not 0 < self.risk <= 1:
+            raise InputError(f"a planner mode needs turn_back_cost >= 0 and 0 < risk <= 1, got {self.turn_back_cost}, "
+                             f"{self.risk}")
+
+
+TURN_BACK_COST = 1000.0
+"""The decisive modes' cost of turning back from a lane change (cost units of
+:class:`~.costs.PaperCost`: as much as 2 m of lane offset held over the horizon)."""
+MODES = {
+    "paper": Mode(),
+    "decisive": Mode(MOTIONS["settled"], TURN_BACK_COST),
+    "comfort": Mode(MOTIONS["comfort"], TURN_BACK_COST),
+    "cautious": Mode(MOTIONS["settled"], TURN_BACK_COST, 0.2),
+}
+"""The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once started,
+settles on the lane centre); ``comfort`` (decisive, within nuPlan's comfort limits); ``cautious`` (decisive, judged
+by the worst 20 % of its sampled futures: CVaR_0.2)."""
+
+
+def risk_cost(scores: torch.Tensor, risk: float) -> torch.Tensor:
+    """Each candidate's cost ``[k]`` from its sampled futures' costs ``scores [n, k]``: the mean of
+    the worst ``ceil(risk · n)`` (CVaR; ``risk`` 1: the mean)."""
+    if risk >= 1.0:
+        return scores.mean(0)
+    return torch.topk(scores, max(1, int(np.ceil(risk * scores.shape[0]))), dim=0).values.mean(0)
+
+
+def turn_backs(actions: np.ndarray, lane: str) -> np.ndarray:
+    """Per action sequence of ``actions [C, W]``, the windows that target ``lane`` (the lane the
+    robot is in) after a window that targeted the other ``[C]``."""
+    lanes = np.asarray(actions) % len(LANES)
+    here = LANES.index(lane)
+    return ((lanes[:, :-1] != here) & (lanes[:, 1:] == here)).sum(1)
 
 
 @runtime_checkable
@@ -93,7 +144,7 @@ def check_cost(cost) -> Cost:
 class Plan:
     """A planning result. ``actions [5]`` the chosen action sequence (window 0 = the fixed one),
     ``index`` its candidate index, ``robot [15, 6]`` its robot states; diagnostics:
-    ``candidates`` (all robot futures), ``first_stage_cost [C]`` (mean cost, +inf if not scored),
+    ``candidates`` (all robot futures), ``first_stage_cost [C]`` (the mode's cost, :class:`Mode`),
     ``finalists [k]`` and ``second_stage_cost [k]``, ``human [n, 15, 6]`` sampled human futures
     for the chosen candidate, ``futures`` (human futures simulated), ``seconds``, and
     ``first_stage_samples`` / ``second_stage_samples`` actually used."""
@@ -117,19 +168,26 @@ class Planner:
     """Plans robot action sequences against a :class:`HumanModel`, on its device, drawing its
     random numbers from one generator seeded with ``seed`` (the same seed, model and calls give
     the same plans). ``budget``: the default sample counts of :meth:`plan` (None: the paper's);
-    ``motion``: how its candidates move the robot (:data:`~.candidates.MOTIONS`)."""
+    ``mode``: how it drives (:class:`Mode`; default: the paper's)."""
 
     def __init__(self, human_model: HumanModel, budget: Budget | None = Budget(), seed: int = 0,
-                 motion: Motion = MOTIONS["paper"]):
+                 mode: Mode = Mode()):
         if not isinstance(human_model, HumanModel):
             raise InputError(f"human_model must be a HumanModel (prepare, sample, device, dtype; for a CVAE: "
                              f"HumanPredictor(cvae)), got {type(human_model).__name__}")
         self.human_model = human_model
-        self.motion = motion
+        if not isinstance(mode, Mode):
+            raise InputError(f"mode must be a planner Mode, got {mode!r}")
+        self.mode = mode
         self.budget = plan_options(budget, None)[0] or Budget()
         self.device, self.dtype = torch.device(human_model.device), human_model.dtype
         self.generator = torch.Generator(device=self.device).manual_seed(validate.integer("seed", seed, 0))
         self.rows_per_second: float | None = None  # measured futures sampled and scored per second
+
+    @property
+    def motion(self) -> Motion:
+        """How the candidates move the robot (the mode's)."""
+        return self.mode.motion
 
     def _situation(self, history, first_action) -> tuple[np.ndarray, Candidates, torch.Tensor, torch.Tensor]:
         """The checked ``history [t+1, 2, 6]``, the candidates from it with window 0 fixed to the
@@ -141,6 +199,13 @@ class Planner:
         robot = torch.as_tensor(candidates.states, dtype=self.dtype, device=self.device)
         human_present = torch.as_tensor(history[-1, 1], dtype=self.dtype, device=self.device)
         return history, candidates, robot, human_present
+
+    def _turning_back(self, candidates: Candidates, history: np.ndarray) -> torch.Tensor:
+        """The mode's turn-back cost of each candidate ``[C]`` (:func:`turn_backs` of the lane the
+        robot is in at the last step of ``history``)."""
+        lane = str(lane_of(np.array([history[-1, 0, 1]]))[0])
+        counts = torch.as_tensor(turn_backs(candidates.actions, lane), dtype=self.dtype, device=self.device)
+        return self.mode.turn_back_cost * counts
 
     def _sample(self, prepared: torch.Tensor, n: int, human_present: torch.Tensor) -> torch.Tensor:
         """``n`` sampled human futures ``[n, k, 15, 6]`` for the prepared robot futures ``prepared [k]``
@@ -169,7 +234,7 @@ class Planner:
         human = self._sample(torch.arange(N_ACTIONS, device=self.device), SCREENING_SAMPLES, human_present)
         # action_sequences orders the candidates by their window-1 action: [N_ACTIONS, C / N_ACTIONS] groups
         grouped = cost(robot.reshape(N_ACTIONS, -1, *robot.shape[1:]).unsqueeze(0), human.unsqueeze(2))
-        return grouped.mean(0).reshape(-1)
+        return risk_cost(grouped.reshape(len(grouped), -1), self.mode.risk)
 
     @torch.no_grad()
     def plan(self, history: np.ndarray, first_action: int, cost: Cost, budget: Budget | None = None,
@@ -195,6 +260,7 @@ class Planner:
         left = (lambda: deadline - (time.perf_counter() - clock)) if deadline is not None else (lambda: np.inf)  # noqa: E731
         timings = {}
         history, candidates, robot, human_present = self._situation(history, first_action)
+        turning_back = self._turning_back(candidates, history)
         timings["candidates"] = time.perf_counter() - clock
         count = len(candidates)
 
@@ -204,7 +270,9 @@ class Planner:
         else:
             self.human_model.prepare(history, candidates.states)
             n1 = budget.first_stage_samples
-            first_cost = self._scores(torch.arange(count, device=self.device), robot, n1, human_present, cost)[0].mean(0)
+            scores = self._scores(torch.arange(count, device=self.device), robot, n1, human_present, cost)[0]
+            first_cost = risk_cost(scores, self.mode.risk)
+        first_cost = first_cost + turning_back
         timings["first_stage"] = time.perf_counter() - clock - sum(timings.values())
 
         # stage 2: the finalists, n2 samples of their own each, in rounds while time allows (one at least)
@@ -216,17 +284,18 @@ class Planner:
         else:
             prepared = finalists
         n2 = budget.second_stage_samples
-        total, used, kept = torch.zeros(k, dtype=self.dtype, device=self.device), 0, []
+        rounds, used, kept = [], 0, []
         round_size = n2 if deadline is None else min(n2, 16)
         while used < n2:
             n = min(round_size, n2 - used)
             if used and 1.5 * n * k / self._rate() > left() - 0.01:
                 break
             scores, human = self._scores(prepared, robot[finalists], n, human_present, cost)
-            total += scores.sum(0)
+            rounds.append(scores)
             used += n
             kept.append(human)
-        second_cost = total / used if used else first_cost[finalists]
+        second_cost = (risk_cost(torch.cat(rounds), self.mode.risk) + turning_back[finalists] if used
+                       else first_cost[finalists])
         best = int(torch.argmin(second_cost))
         index = int(finalists[best])
         human = torch.cat(kept, 0)[:keep_samples, best] if kept else torch.zeros((0, HORIZON, len(STATE_NAMES)))
@@ -241,8 +310,9 @@ class Planner:
 
     @torch.no_grad()
     def score(self, history: np.ndarray, first_action: int, cost: Cost, indices, samples: int) -> tuple[np.ndarray, np.ndarray]:
-        """Expected costs ``[k]`` of candidates ``indices [k]`` (of :func:`robot_candidates` with
-        window 0 fixed to ``first_action``) from ``samples`` fresh human futures each, and those
+        """The mode's costs ``[k]`` (:class:`Mode`: risk over the futures, turning back) of candidates
+        ``indices [k]`` (of :func:`robot_candidates` with window 0 fixed to ``first_action``) from
+        ``samples`` fresh human futures each, and those
         futures ``[samples, k, 15, 6]`` (for re-scoring a choice and for figures). Arguments are
         checked as by :meth:`plan`."""
         check_cost(cost)
@@ -253,7 +323,8 @@ class Planner:
         chosen = torch.as_tensor(indices, device=self.device)
         scores, human = self._scores(torch.arange(len(chosen), device=self.device), robot[chosen], samples,
                                      human_present, cost)
-        return scores.mean(0).cpu().double().numpy(), human.cpu().double().numpy()
+        total = risk_cost(scores, self.mode.risk) + self._turning_back(candidates, history)[chosen]
+        return total.cpu().double().numpy(), human.cpu().double().numpy()
 
     def _rate(self) -> float:
         """Measured human futures sampled and scored per second (a conservative guess before any)."""

@@ -8,6 +8,12 @@ For a fixed ``T`` the minimum-energy jerk is ``u(t) = b(T - t)ᵀ G(T)⁻¹ d(T)
 ``b(s) = [s²/2, s, 1]``, ``G`` the controllability Gramian of the triple integrator and ``d`` the
 final state minus the free (zero-jerk) drift, so the cost is ``J(T) = T + d(T)ᵀ G(T)⁻¹ d(T) / ρ``,
 minimised over ``T`` (vectorised golden-section search on ``log T``). Past ``T`` the target is held.
+
+``min_time`` bounds ``T`` from below. The robot executes a plan as accelerations sampled every 0.1 s
+(the world integrates them by the trapezoid rule), so a correction shorter than a few steps is not
+executed as solved: from a lane centre the residue of the sampling is re-solved every window into
+±0.7 m/s² of lateral chatter (ρ = 1000) that never settles; with ``T ≥ 0.6 s`` the same corrections
+decay to rest (docs/closed_loop.md).
 """
 
 from __future__ import annotations
@@ -43,11 +49,12 @@ def steering_cost(state: np.ndarray, target: np.ndarray, T: np.ndarray, weight: 
     return T + np.einsum("...i,...i->...", d, _coefficients(state, target, T)) / weight
 
 
-def optimal_time(state: np.ndarray, target: np.ndarray, iterations: int = 50, weight: float = JERK_WEIGHT) -> np.ndarray:
-    """Free final time ``T* [...]`` (s) minimising :func:`steering_cost` with ρ = ``weight``; 0
-    where the state is already at the target. ``state [..., 3]``, ``target [...]`` (m)."""
+def optimal_time(state: np.ndarray, target: np.ndarray, iterations: int = 50, weight: float = JERK_WEIGHT,
+                 min_time: float = T_BOUNDS[0]) -> np.ndarray:
+    """Free final time ``T* [...]`` (s, at least ``min_time``) minimising :func:`steering_cost` with
+    ρ = ``weight``; 0 where the state is already at the target. ``state [..., 3]``, ``target [...]`` (m)."""
     state, target = np.asarray(state, float), np.asarray(target, float)
-    lo = np.full(target.shape, np.log(T_BOUNDS[0]))
+    lo = np.full(target.shape, np.log(max(min_time, T_BOUNDS[0])))
     hi = np.full(target.shape, np.log(T_BOUNDS[1]))
     cost = lambda u: steering_cost(state, target, np.exp(u), weight)  # noqa: E731
     a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
@@ -63,13 +70,14 @@ def optimal_time(state: np.ndarray, target: np.ndarray, iterations: int = 50, we
     return np.where(at_target, 0.0, T)
 
 
-def steer(state: np.ndarray, target: np.ndarray, times: np.ndarray, weight: float = JERK_WEIGHT) -> np.ndarray:
+def steer(state: np.ndarray, target: np.ndarray, times: np.ndarray, weight: float = JERK_WEIGHT,
+          min_time: float = T_BOUNDS[0]) -> np.ndarray:
     """States ``[..., len(times), 4]`` = ``(y, yd, ydd, yddd)`` at ``times`` (s after the start) along
     the optimal steering from ``state [..., 3]`` to ``(target, 0, 0)`` with jerk weight ρ =
-    ``weight`` (smaller: gentler and longer); the target is held (jerk 0, at rest) once the final
-    time is reached."""
+    ``weight`` (smaller: gentler and longer) and final time at least ``min_time`` (s); the target is
+    held (jerk 0, at rest) once the final time is reached."""
     state, target, times = np.asarray(state, float), np.asarray(target, float), np.asarray(times, float)
-    T = optimal_time(state, target, weight=weight)
+    T = optimal_time(state, target, weight=weight, min_time=min_time)
     safe_T = np.where(T > 0, T, 1.0)
     c = _coefficients(state, target, safe_T)  # [..., 3]
     t = np.minimum(times, T[..., None])  # [..., K]

@@ -272,6 +272,7 @@ def summary_table(summary: dict) -> str:
         f"score {interval(summary['score'], 3)} (ttc {num(parts['ttc']['mean'])}, progress "
         f"{num(parts['progress']['mean'])}, comfort {num(parts['comfort']['mean'])})   lane reversals "
         f"{num(summary['lane_reversals']['mean'])} per episode, at most one in {pct(summary['lane_reversals']['at_most_one'])}   "
+        f"lateral swings {num(summary['lateral_swings']['mean'])} per episode   "
         f"comfort violations {summary['comfort_violation_steps']['count']} of {summary['comfort_violation_steps']['steps']} steps",
         f"longitudinal gap while overlapping laterally: min {num(gap['min'])} m, mean of episodes {num(gap['mean'])} m; "
         f"closest centres: mean of episodes {num(summary['min_distance_m']['mean'])} m",

@@ -31,6 +31,8 @@ robot's car index), judged by the scenario's rules
   ``LANE_DIVIDER_Y``, :func:`~trafficweaving.scenario.lane_of`), s; None if it never is;
 * ``lane_reversals``: how often the robot's sideways motion turns back towards the lane it
   started in (:func:`lane_reversals`);
+* ``lateral_swings``: how often the robot's lateral acceleration changes sign (:func:`lateral_swings`;
+  one lane change swings once: towards the other lane, then braking into it);
 * ``score``: the closed-loop score and its parts (:func:`closed_loop_score`, after nuPlan's:
   Caesar et al., 2021; ``docs/closed_loop.md``).
 
@@ -117,6 +119,7 @@ def episode_metrics(states: np.ndarray, length: int, robot: int, dt: float = DT)
         "jerk_rms": {"longitudinal": _rms(jerk[:, 0]), "lateral": _rms(jerk[:, 1])},
         "time_to_swap_s": float(crossed[0] * dt) if len(crossed) else None,
         "lane_reversals": lane_reversals(y[robot], states[robot, :, 3]),
+        "lateral_swings": lateral_swings(acc[:, 1]),
         "score": closed_loop_score(states, robot, outcome, robot_swapped, int(crossed[0]) if len(crossed) else None, dt),
     }
 
@@ -157,6 +160,17 @@ def lane_reversals(y: np.ndarray, yd: np.ndarray) -> int:
     spells = moving[moving != 0]
     changes = spells[1:][spells[1:] != spells[:-1]]
     return int((changes < 0).sum())
+
+
+SWING_ACCEL = 0.3
+"""Lateral acceleration (m/s²) above which its sign counts for :func:`lateral_swings`."""
+
+
+def lateral_swings(ydd: np.ndarray) -> int:
+    """Sign changes of the lateral accelerations ``ydd [T]`` (m/s²) among the steps where
+    ``|ydd| > SWING_ACCEL``: a steady lane change has one; dithering and chatter many."""
+    signs = np.sign(ydd[np.abs(ydd) > SWING_ACCEL])
+    return int((signs[1:] != signs[:-1]).sum())
 
 
 def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swapped: bool, crossed: int | None,
@@ -249,6 +263,7 @@ def _group(records: Sequence[dict]) -> dict:
                         **{k: mean_interval([m["score"][k] for m in metrics]) for k in SCORE_WEIGHTS}},
         "lane_reversals": {**mean_interval(column("lane_reversals")),
                            "at_most_one": rate([r <= 1 for r in column("lane_reversals")])},
+        "lateral_swings": mean_interval([m.get("lateral_swings") for m in metrics]),
         "comfort_violation_steps": {"count": sum(m["score"]["comfort_violations"] for m in metrics),
                                     "steps": sum(m["score"]["steps"] for m in metrics)},
     }
@@ -268,7 +283,7 @@ def aggregate(records: Sequence[dict]) -> dict:
     (plans longer than ``planning_period_s``) over all plans pooled, and ``by_initial_condition``:
     the same rates and means per :func:`initial_condition_key`, sorted (unknown ``dv`` last); also
     ``score`` (t-interval), ``score_parts`` (the multipliers as rates, the averaged parts as means),
-    ``lane_reversals`` (mean, and the rate of episodes with ``at_most_one``) and
+    ``lane_reversals`` (mean, and the rate of episodes with ``at_most_one``), ``lateral_swings`` and
     ``comfort_violation_steps`` (``count`` of the robot's steps over the limits, of ``steps``).
     Undefined values are None (strict JSON).
     """

@@ -24,13 +24,16 @@ from ..errors import InputError
 from ..model.checkpoint import choose_device, load_model
 from ..model.constant_velocity import ConstantVelocityHuman
 from ..model.predictor import HumanPredictor
-from ..planning.candidates import MOTIONS
 from ..planning.mpc import MPCPolicy
-from ..planning.planner import Budget, Planner
+from ..planning.planner import MODES, Budget, Planner
 from ..scenario import CAR_LENGTH, COLLISION_DY, DT, LANE_CENTRE_Y, LANES, ROAD_END_X, STATE_NAMES, lane_of
 from .world import Agent
 
-ROBOT_SPECS = ("planner", "planner-comfort", "planner-cv", "rules")
+PLANNER_MODES = {"planner": "decisive", "planner-paper": "paper", "planner-comfort": "comfort",
+                 "planner-cautious": "cautious", "planner-cv": "decisive"}
+"""The planning robots and their planner's mode (:data:`~trafficweaving.planning.planner.MODES`):
+the default ``planner`` is decisive; ``planner-paper`` is the paper's exactly."""
+ROBOT_SPECS = (*PLANNER_MODES, "rules")
 """The robots :func:`robot_agent` builds."""
 
 
@@ -189,10 +192,12 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
     * ``planner``: :class:`~trafficweaving.planning.mpc.MPCPolicy` planning against the human
       model ``model`` (``default``, a checkpoint path or ``authors:PATH``, as
       :func:`~trafficweaving.model.checkpoint.load_model`; the unimodal ``lstm`` variant is just
-      ``model=path/to/lstm.pt``) through :class:`HumanPredictor` (``precision="auto"``);
-    * ``planner-comfort``: the same planner whose candidates keep to nuPlan's comfort limits
-      (:data:`~trafficweaving.planning.candidates.MOTIONS` ``"comfort"``);
-    * ``planner-cv``: the paper's planner against :class:`ConstantVelocityHuman` (``model`` unused);
+      ``model=path/to/lstm.pt``) through :class:`HumanPredictor` (``precision="auto"``), in the
+      decisive mode (:data:`~trafficweaving.planning.planner.MODES`);
+    * ``planner-paper``: the same in the paper's mode exactly;
+    * ``planner-comfort``: decisive, with candidates that keep to nuPlan's comfort limits;
+    * ``planner-cautious``: decisive, judging its candidates by CVaR (the worst 20 % of the futures);
+    * ``planner-cv``: the decisive planner against :class:`ConstantVelocityHuman` (``model`` unused);
     * ``rules``: :class:`RuleBasedRobot` (``model``, ``deadline``, ``budget`` unused).
 
     The planners run on ``device`` (``auto``, ``cpu``, ``cuda`` or ``cuda:N``) with the sample
@@ -208,10 +213,10 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
 
 def robot_planner(spec: str, model: str = "default", budget: Budget | None = None,
                   device: torch.device | str = "cpu") -> Planner:
-    """The :class:`Planner` of the planning robot ``spec`` (``planner``, ``planner-comfort`` or
-    ``planner-cv``, as :func:`robot_agent`), for policies that drive it their own way (the
+    """The :class:`Planner` of the planning robot ``spec`` (a key of :data:`PLANNER_MODES`, as
+    :func:`robot_agent`), for policies that drive it their own way (the
     browser's non-blocking one)."""
     device = choose_device(str(device))
     human_model = (ConstantVelocityHuman(device) if spec == "planner-cv"
                    else HumanPredictor(load_model(model, device), precision="auto"))
-    return Planner(human_model, budget, motion=MOTIONS["comfort" if spec == "planner-comfort" else "paper"])
+    return Planner(human_model, budget, mode=MODES[PLANNER_MODES[spec]])
