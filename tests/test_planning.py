@@ -231,6 +231,16 @@ def toy_cost(robot, human):
     return 200.0 * (windows != 4.0).sum(-1) + 3100.0 * human[..., 4].mean(-1)
 
 
+class GoalToyCost:
+    """:func:`toy_cost` for a robot heading to the lane centre ``goal_y``, which it ignores."""
+
+    def __init__(self, goal_y: float):
+        self.goal_y = goal_y
+
+    def __call__(self, robot, human):
+        return toy_cost(robot, human)
+
+
 PRESENT_TOY = np.array([0.0, RIGHT, 30.0, 0.0, 0.0, 0.0])
 HISTORY_TOY = np.repeat(np.stack([PRESENT_TOY, PRESENT_TOY + [0, 4.26, 0, 0, 0, 0]])[None], 6, axis=0)
 
@@ -262,19 +272,25 @@ def test_budget_counts_are_configurable():
     assert plan.futures == 4096 * 2 + 5 * 7 and len(plan.finalists) == 5 and plan.second_stage_samples == 7
 
 
-def test_turning_back_from_a_lane_change_costs_and_setting_out_does_not():
-    """HISTORY_TOY's robot is in the right lane; window 0 sets out for the left lane."""
-    fixed = Action.of(0.0, "left").index
-    plain = Planner(ToyHuman(), seed=0).plan(HISTORY_TOY, fixed, toy_cost)
-    committed = Planner(ToyHuman(), seed=0, mode=Mode(turn_back_cost=1000.0)).plan(HISTORY_TOY, fixed, toy_cost)
-    backs = turn_backs(plain.candidates.actions, "right")  # the toy cost ignores the lane
+def test_turning_back_from_a_lane_change_under_way_costs_and_setting_out_does_not():
+    """HISTORY_TOY's robot is in the right lane; window 0 sets out for the goal, the left lane."""
+    fixed, cost = Action.of(0.0, "left").index, GoalToyCost(LEFT)
+    history = HISTORY_TOY.copy()
+    history[-1, 0, 1] = RIGHT + 1.5  # 1.5 m under way
+    plain = Planner(ToyHuman(), seed=0).plan(history, fixed, cost)
+    committed = Planner(ToyHuman(), seed=0, mode=Mode(turn_back_cost=1000.0, commit_offset=1.0)).plan(history, fixed, cost)
+    backs = turn_backs(plain.candidates.actions, "left")  # the toy cost ignores the lane
     assert backs.max() == 2 and (backs == 0).sum() == N_CANDIDATES // 2 ** (WINDOWS - 1)  # left, right, left, right, left
     np.testing.assert_allclose(committed.first_stage_cost - plain.first_stage_cost, 1000.0 * backs, atol=1e-3)
     assert backs[committed.index] == 0 and _accelerates_throughout(committed)
+    probing = Planner(ToyHuman(), seed=0, mode=Mode(turn_back_cost=1000.0, commit_offset=2.0)).plan(history, fixed, cost)
+    np.testing.assert_array_equal(probing.first_stage_cost, plain.first_stage_cost)  # not yet committed: free
+    free = Planner(ToyHuman(), seed=0, mode=Mode(turn_back_cost=1000.0)).plan(history, fixed, toy_cost)
+    np.testing.assert_array_equal(free.first_stage_cost, plain.first_stage_cost)  # a cost without a goal lane
     lanes = lambda *names: [Action.of(0.0, n).index for n in names]  # noqa: E731
     sequences = np.array([lanes("right", "left", "left", "left", "left"), lanes("left", "right", "left", "right", "left"),
                           lanes("right", "right", "right", "right", "right"), lanes("left", "left", "right", "right", "right")])
-    assert turn_backs(sequences, "right").tolist() == [0, 2, 0, 1]
+    assert turn_backs(sequences, "left").tolist() == [0, 2, 0, 1]
 
 
 def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():

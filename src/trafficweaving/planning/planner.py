@@ -37,33 +37,38 @@ SCREENING_SAMPLES = 32
 class Mode:
     """How the planner drives (docs/closed_loop.md). ``motion``: how its candidates move the robot
     (:data:`~.candidates.MOTIONS`). ``turn_back_cost``: added to a candidate's cost for every window
-    that turns back to the lane the robot is in after the window before it set out for the other
-    lane, window 0 (the one being executed) included (:func:`turn_backs`): once a lane change has
-    started, the plan keeps to it unless turning back is better by more than that; setting out is
-    free (0: the paper's).
+    that leaves the goal lane (a cost's ``goal_y``) after the window before it targeted it, window 0
+    (the one being executed) included (:func:`turn_backs`), once the robot is ``commit_offset`` m
+    or more from the other lane's centre: once a lane change is under way, the plan keeps to it
+    unless turning back is better by more than that; setting out, and turning back from a first
+    probe, are free (0: the paper's).
     ``risk``: the share α of a candidate's sampled human futures whose costs judge it, the worst
     ones (CVaR_α, :func:`risk_cost`; 1: the expected cost, the paper's)."""
 
     motion: Motion = MOTIONS["paper"]
     turn_back_cost: float = 0.0
     risk: float = 1.0
+    commit_offset: float = 0.0
 
     def __post_init__(self):
-        if not (self.turn_back_cost >= 0 and np.isfinite(self.turn_back_cost)) or not 0 < self.risk <= 1:
-            raise InputError(f"a planner mode needs turn_back_cost >= 0 and 0 < risk <= 1, got {self.turn_back_cost}, "
-                             f"{self.risk}")
+        finite = all(v >= 0 and np.isfinite(v) for v in (self.turn_back_cost, self.commit_offset))
+        if not finite or not 0 < self.risk <= 1:
+            raise InputError(f"a planner mode needs turn_back_cost >= 0, commit_offset >= 0 and 0 < risk <= 1, got "
+                             f"{self.turn_back_cost}, {self.commit_offset}, {self.risk}")
 
 
 TURN_BACK_COST = 1000.0
 """The decisive modes' cost of turning back from a lane change (cost units of
 :class:`~.costs.PaperCost`: as much as 2 m of lane offset held over the horizon)."""
+COMMIT_OFFSET = 1.0
+"""How far (m) from the other lane's centre the decisive modes' robot is committed to its lane change."""
 MODES = {
     "paper": Mode(),
-    "decisive": Mode(MOTIONS["settled"], TURN_BACK_COST),
-    "comfort": Mode(MOTIONS["comfort"], TURN_BACK_COST),
-    "cautious": Mode(MOTIONS["settled"], TURN_BACK_COST, 0.2),
+    "decisive": Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET),
+    "comfort": Mode(MOTIONS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET),
+    "cautious": Mode(MOTIONS["settled"], TURN_BACK_COST, 0.2, COMMIT_OFFSET),
 }
-"""The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once started,
+"""The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once under way,
 settles on the lane centre); ``comfort`` (decisive, within nuPlan's comfort limits); ``cautious`` (decisive, judged
 by the worst 20 % of its sampled futures: CVaR_0.2)."""
 
@@ -76,12 +81,12 @@ def risk_cost(scores: torch.Tensor, risk: float) -> torch.Tensor:
     return torch.topk(scores, max(1, int(np.ceil(risk * scores.shape[0]))), dim=0).values.mean(0)
 
 
-def turn_backs(actions: np.ndarray, lane: str) -> np.ndarray:
-    """Per action sequence of ``actions [C, W]``, the windows that target ``lane`` (the lane the
-    robot is in) after a window that targeted the other ``[C]``."""
+def turn_backs(actions: np.ndarray, goal: str) -> np.ndarray:
+    """Per action sequence of ``actions [C, W]``, the windows that leave the ``goal`` lane after a
+    window that targeted it ``[C]``."""
     lanes = np.asarray(actions) % len(LANES)
-    here = LANES.index(lane)
-    return ((lanes[:, :-1] != here) & (lanes[:, 1:] == here)).sum(1)
+    target = LANES.index(goal)
+    return ((lanes[:, :-1] == target) & (lanes[:, 1:] != target)).sum(1)
 
 
 @runtime_checkable
@@ -200,11 +205,19 @@ class Planner:
         human_present = torch.as_tensor(history[-1, 1], dtype=self.dtype, device=self.device)
         return history, candidates, robot, human_present
 
-    def _turning_back(self, candidates: Candidates, history: np.ndarray) -> torch.Tensor:
-        """The mode's turn-back cost of each candidate ``[C]`` (:func:`turn_backs` of the lane the
-        robot is in at the last step of ``history``)."""
-        lane = str(lane_of(np.array([history[-1, 0, 1]]))[0])
-        counts = torch.as_tensor(turn_backs(candidates.actions, lane), dtype=self.dtype, device=self.device)
+    def _turning_back(self, candidates: Candidates, history: np.ndarray, cost: Cost) -> torch.Tensor:
+        """The mode's turn-back cost of each candidate ``[C]`` (:func:`turn_backs` from the goal lane
+        of ``cost``, its ``goal_y``; none for a cost without one or before the robot, at the last
+        step of ``history``, is ``commit_offset`` from the other lane's centre)."""
+        goal_y = getattr(cost, "goal_y", None)
+        zero = torch.zeros(len(candidates), dtype=self.dtype, device=self.device)
+        if goal_y is None or self.mode.turn_back_cost == 0:
+            return zero
+        goal = str(lane_of(np.array([goal_y]))[0])
+        other = next(lane for lane in LANES if lane != goal)
+        if abs(history[-1, 0, 1] - LANE_CENTRE_Y[other]) < self.mode.commit_offset:
+            return zero
+        counts = torch.as_tensor(turn_backs(candidates.actions, goal), dtype=self.dtype, device=self.device)
         return self.mode.turn_back_cost * counts
 
     def _sample(self, prepared: torch.Tensor, n: int, human_present: torch.Tensor) -> torch.Tensor:
@@ -260,7 +273,7 @@ class Planner:
         left = (lambda: deadline - (time.perf_counter() - clock)) if deadline is not None else (lambda: np.inf)  # noqa: E731
         timings = {}
         history, candidates, robot, human_present = self._situation(history, first_action)
-        turning_back = self._turning_back(candidates, history)
+        turning_back = self._turning_back(candidates, history, cost)
         timings["candidates"] = time.perf_counter() - clock
         count = len(candidates)
 
@@ -323,7 +336,7 @@ class Planner:
         chosen = torch.as_tensor(indices, device=self.device)
         scores, human = self._scores(torch.arange(len(chosen), device=self.device), robot[chosen], samples,
                                      human_present, cost)
-        total = risk_cost(scores, self.mode.risk) + self._turning_back(candidates, history)[chosen]
+        total = risk_cost(scores, self.mode.risk) + self._turning_back(candidates, history, cost)[chosen]
         return total.cpu().double().numpy(), human.cpu().double().numpy()
 
     def _rate(self) -> float:
