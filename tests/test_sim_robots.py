@@ -88,7 +88,7 @@ def test_robots_keep_the_agent_contract_and_are_deterministic_given_the_seed(mak
 
 
 def test_the_mpc_holds_then_plans_every_window_from_the_true_state():
-    robot, human = robot_agent("planner-cv", budget=TINY), ScriptedHuman()
+    robot, human = robot_agent("planner-cv", budget=TINY), ScriptedHuman()  # decisive: settled motion
     world, made = World(STARTS[[7]]), []  # the robot (car 1) starts in the left lane
     human.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
     robot.reset(np.random.default_rng(0), world.states[:, :, 0], 1)
@@ -103,7 +103,7 @@ def test_the_mpc_holds_then_plans_every_window_from_the_true_state():
     for k, (plan, t) in enumerate(zip(robot.plans, (8, 11, 14))):
         if k:
             assert plan.actions[0] == robot.plans[k - 1].actions[1]  # window 0: the window being executed
-        np.testing.assert_allclose(plan.robot, rollout(car[t], plan.actions[None])[0], atol=1e-9)  # from the true state
+        np.testing.assert_allclose(plan.robot, rollout(car[t], plan.actions[None], robot.planner.motion)[0], atol=1e-9)  # from the true state
         np.testing.assert_array_equal(car[t + 1: t + 4, 4:], plan.robot[:3, 4:])  # executed: the plan's accelerations
 
 
@@ -132,8 +132,8 @@ def test_the_planning_robots_drive_in_their_modes():
     from trafficweaving.planning.planner import MODES
     from trafficweaving.sim.robots import robot_planner
 
-    assert robot_planner("planner").mode == robot_planner("planner-cv").mode == MODES["paper"]
-    assert robot_planner("planner-decisive").mode == MODES["decisive"] and MODES["paper"].motion == MOTIONS["paper"]
+    assert robot_planner("planner").mode == robot_planner("planner-cv").mode == MODES["decisive"]
+    assert robot_planner("planner-paper").mode == MODES["paper"] and MODES["paper"].motion == MOTIONS["paper"]
     assert MODES["paper"].turn_back_cost == 0 and MODES["paper"].risk == 1  # the paper's objective, unchanged
     assert robot_planner("planner-comfort").motion == MOTIONS["comfort"]
     assert robot_planner("planner-cautious").mode.risk < 1
@@ -141,10 +141,10 @@ def test_the_planning_robots_drive_in_their_modes():
 
 # ---------------------------------------------------------------- bad input
 def test_bad_specs_and_arguments_raise_input_errors():
-    with pytest.raises(InputError, match=r"robot 'mpc' is unknown \(expected one of: planner, planner-decisive, planner-comfort, "
+    with pytest.raises(InputError, match=r"robot 'mpc' is unknown \(expected one of: planner, planner-paper, planner-comfort, "
                                          r"planner-cautious, planner-cv, rules\)"):
         robot_agent("mpc")
-    assert ROBOT_SPECS == ("planner", "planner-decisive", "planner-comfort", "planner-cautious", "planner-cv", "rules")
+    assert ROBOT_SPECS == ("planner", "planner-paper", "planner-comfort", "planner-cautious", "planner-cv", "rules")
     for bad in ({"time_headway": -1.0}, {"politeness": float("nan")}, {"hurried_lane_change_time": 4.0}):
         with pytest.raises(InputError, match=next(iter(bad))):
             RuleParameters(**bad)

@@ -697,9 +697,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="closed-loop episodes of a robot against a human, with metrics and CIs")
     p.add_argument("--episodes", type=POSITIVE, required=True, help="episodes 0..N-1 (each from --seed and its index)")
-    p.add_argument("--robot", default="planner", help="planner (default: the paper's), planner-decisive (keeps to a lane "
-                                                      "change, settles on the lane centre), planner-comfort (within nuPlan's "
-                                                      "comfort limits), planner-cautious (CVaR), planner-cv or rules")
+    p.add_argument("--robot", default="planner", help="planner (default: decisive, keeps to a lane change and settles "
+                                                      "on the lane centre), planner-paper (the paper's exactly), "
+                                                      "planner-comfort (within nuPlan's comfort limits), planner-cautious "
+                                                      "(CVaR), planner-cv or rules")
     p.add_argument("--human", required=True, help=HUMAN_SPECS)
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--model", default="default", help="the planner's human model: checkpoint path, default, or authors:PATH")

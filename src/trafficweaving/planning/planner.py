@@ -57,9 +57,9 @@ class Mode:
                              f"{self.turn_back_cost}, {self.commit_offset}, {self.risk}")
 
 
-TURN_BACK_COST = 1000.0
+TURN_BACK_COST = 300.0
 """The decisive modes' cost of turning back from a lane change (cost units of
-:class:`~.costs.PaperCost`: as much as 2 m of lane offset held over the horizon)."""
+:class:`~.costs.PaperCost`: about 0.6 m of lane offset held over the horizon)."""
 COMMIT_OFFSET = 1.0
 """How far (m) from the other lane's centre the decisive modes' robot is committed to its lane change."""
 MODES = {

@@ -29,11 +29,10 @@ from ..planning.planner import MODES, Budget, Planner
 from ..scenario import CAR_LENGTH, COLLISION_DY, DT, LANE_CENTRE_Y, LANES, ROAD_END_X, STATE_NAMES, lane_of
 from .world import Agent
 
-PLANNER_MODES = {"planner": "paper", "planner-decisive": "decisive", "planner-comfort": "comfort",
-                 "planner-cautious": "cautious", "planner-cv": "paper"}
+PLANNER_MODES = {"planner": "decisive", "planner-paper": "paper", "planner-comfort": "comfort",
+                 "planner-cautious": "cautious", "planner-cv": "decisive"}
 """The planning robots and their planner's mode (:data:`~trafficweaving.planning.planner.MODES`):
-the default ``planner`` is the paper's (docs/closed_loop.md says why the decisive mode is not the
-default yet)."""
+the default ``planner`` is decisive (docs/closed_loop.md); ``planner-paper`` is the paper's exactly."""
 ROBOT_SPECS = (*PLANNER_MODES, "rules")
 """The robots :func:`robot_agent` builds."""
 
@@ -194,11 +193,11 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
       model ``model`` (``default``, a checkpoint path or ``authors:PATH``, as
       :func:`~trafficweaving.model.checkpoint.load_model`; the unimodal ``lstm`` variant is just
       ``model=path/to/lstm.pt``) through :class:`HumanPredictor` (``precision="auto"``), in the
-      paper's mode (:data:`~trafficweaving.planning.planner.MODES`);
-    * ``planner-decisive``: the same in the decisive mode (settled steering, turn-back cost);
+      decisive mode (:data:`~trafficweaving.planning.planner.MODES`: settled steering, turn-back cost);
+    * ``planner-paper``: the same in the paper's mode exactly;
     * ``planner-comfort``: decisive, with candidates that keep to nuPlan's comfort limits;
     * ``planner-cautious``: decisive, judging its candidates by CVaR (the worst 20 % of the futures);
-    * ``planner-cv``: the paper's planner against :class:`ConstantVelocityHuman` (``model`` unused);
+    * ``planner-cv``: the decisive planner against :class:`ConstantVelocityHuman` (``model`` unused);
     * ``rules``: :class:`RuleBasedRobot` (``model``, ``deadline``, ``budget`` unused).
 
     The planners run on ``device`` (``auto``, ``cpu``, ``cuda`` or ``cuda:N``) with the sample

@@ -37,10 +37,10 @@ completes, the client sees HTTP 403."""
 
 
 def build_robot(model: str, deadline: float, threads: int, device: str = "cpu") -> NonBlockingMPCPolicy:
-    """The default planner (``sim.robots.robot_planner("planner")``: the paper's, against the human model ``model`` in real-time mode with ``deadline`` s per plan), planning in
-    a background thread with ``threads`` torch threads; warmed up with a few plans there, so that
-    the first plan of a trial does not pay for lazy initialisation and the deadline mode knows
-    this machine's speed."""
+    """The default planner (``sim.robots.robot_planner("planner")``: decisive, against the human
+    model ``model`` in real-time mode with ``deadline`` s per plan), planning in a background
+    thread with ``threads`` torch threads; warmed up with a few plans there, so that the first plan
+    of a trial does not pay for lazy initialisation and the deadline mode knows this machine's speed."""
     robot = NonBlockingMPCPolicy(robot_planner("planner", model, device=device), deadline=deadline, threads=threads)
     robot.warm_up(example_history())
     return robot
