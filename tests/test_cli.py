@@ -239,6 +239,43 @@ def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoin
     assert code == 2 and "no fold_K.pt files" in err and err.count("\n") == 1
 
 
+def test_mix_writes_a_mixture_with_a_companion_conditioned_like_the_model(capsys, tmp_path):
+    import torch
+
+    from trafficweaving.model.checkpoint import load_checkpoint
+    from trafficweaving.model.mixture import Mixture
+
+    data, companion, model, folds = tmp_path / "d.parquet", tmp_path / "c.pt", tmp_path / "m.pt", tmp_path / "folds"
+    run(capsys, "generate", "--trials", 9, "--seed", 3, "--out", data, "--json")
+    run(capsys, "train", "--data", data, "--out", companion, "--steps", 2, "--variant", "cvae", "--json")  # recorded futures
+    run(capsys, "train", "--data", data, "--init", companion, "--robot-future", "guess", "--out", model, "--steps", 2, "--json")
+    run(capsys, "crossval", "--data", data, "--folds", 3, "--init", companion, "--robot-future", "guess", "--steps", 2,
+        "--validate-every", 2, "--out", folds, "--json")
+    code, out, _ = run(capsys, "mix", "--model", model, "--companion", companion, "--weight", 0.3, "--out", tmp_path / "x.pt",
+                       "--folds", folds, "--out-folds", tmp_path / "xfolds", "--json")
+    assert code == 0 and json.loads(out) == {"out": str(tmp_path / "x.pt"), "companion": str(companion), "weight": 0.3,
+                                              "folds": 3}
+    mixed, payload = load_checkpoint(tmp_path / "x.pt")
+    trained, _ = load_checkpoint(model)
+    original, _ = load_checkpoint(companion)
+    assert isinstance(mixed, Mixture) and mixed.weights == pytest.approx([0.3, 0.7])
+    assert [c.config.robot_future for c in mixed.components] == ["guess", "guess"] and original.config.robot_future == "recorded"
+    for component, source in zip(mixed.components, (trained, original)):  # the weights kept
+        assert all(torch.equal(v, source.state_dict()[k]) for k, v in component.state_dict().items())
+    assert payload["mixture_recipe"] == {"companion": str(companion), "weight": 0.3}
+    fold, fold_payload = load_checkpoint(tmp_path / "xfolds" / "fold_2.pt")
+    assert isinstance(fold, Mixture) and len(fold_payload["held_out_trials"]) == 3
+    # a mixture is not mixed again; the fold models need a folder to go to; the weight is a share
+    code, _, err = run(capsys, "mix", "--model", tmp_path / "x.pt", "--companion", companion, "--weight", 0.5,
+                       "--out", tmp_path / "y.pt")
+    assert code == 2 and "is a mixture already" in err and err.count("\n") == 1
+    code, _, err = run(capsys, "mix", "--model", model, "--companion", companion, "--weight", 0.5, "--out", tmp_path / "y.pt",
+                       "--folds", folds)
+    assert code == 2 and "--folds and --out-folds go together" in err and not (tmp_path / "y.pt").exists()
+    code, _, err = run(capsys, "mix", "--model", model, "--companion", companion, "--weight", 1, "--out", tmp_path / "y.pt")
+    assert code == 2 and "(0, 1)" in err
+
+
 def test_nested_recipe_search_chooses_candidate_and_calibration_on_inner_folds(capsys, tmp_path):
     from trafficweaving.model.checkpoint import load_checkpoint
 

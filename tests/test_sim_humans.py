@@ -11,10 +11,12 @@ from trafficweaving.data.trials import load_trials
 from trafficweaving.dynamics import constant_acceleration_future, future_states
 from trafficweaving.errors import InputError
 from trafficweaving.model.checkpoint import load_model
-from trafficweaving.scenario import CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y, MIN_HISTORY, study_initial_conditions
+from trafficweaving.scenario import (CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y, MIN_HISTORY, SWAP_THRESHOLD_Y,
+                                   on_road, study_initial_conditions)
 from trafficweaving.sim.drivers import DriverModel, DriverStyles
 from trafficweaving.sim.generate import generate_trials
-from trafficweaving.sim.humans import ModelDriver, ReplayDriver, SampledDrivers, SyntheticDrivers, human_agent
+from trafficweaving.sim.humans import (ModelDriver, ReplayDriver, SampledDrivers, SyntheticDrivers, human_agent, keep_on_road,
+                                      lateness)
 from trafficweaving.sim.world import run_episodes
 
 
@@ -253,8 +255,11 @@ def test_a_driver_model_executes_a_safe_sample_or_the_one_unsafe_latest():
     agent.proposals = 3
     agent.model.sample_futures = proposing(5.0, 1.0, 0.0)  # off the road at once, off the road late, safe
     np.testing.assert_allclose(agent.sample(histories, futures)[0, :, 1], 0.0, atol=1e-5)
-    agent.model.sample_futures = proposing(5.0, 1.0, 5.0)  # none safe: the one leaving the road latest
-    np.testing.assert_allclose(agent.sample(histories, futures)[0, :, 1], 1.0, atol=1e-5)
+    # none safe: the one leaving the road latest, its pedal kept and its wheel steering back to the lane's centre
+    agent.model.sample_futures = _proposing(driver, (0.3, 5.0), (0.6, 1.0), (0.9, 5.0))
+    executed = agent.sample(histories, futures)[0]
+    np.testing.assert_allclose(executed[:, 0], 0.6, atol=1e-5)
+    np.testing.assert_allclose(executed[:, 1], 0.0, atol=1e-5)  # already on the centre line, at rest
 
 
 def test_a_driver_model_judges_its_proposals_by_the_other_cars_predicted_futures():
@@ -298,3 +303,40 @@ def test_a_driver_model_near_the_cutoff_prefers_a_proposal_that_swaps_lanes_in_t
     near = histories.copy()
     near[:, :, 1, 0] = CUTOFF_X - 90.0  # still in its lane in 1.5 s, 46 m (1.6 s) short of the cutoff: late
     np.testing.assert_allclose(agent.sample(near, futures)[0, :, 1], -3.0, atol=1e-5)
+
+
+def test_lateness_is_zero_on_time_and_grows_with_the_distance_left_to_the_divider():
+    start_y = np.array([LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]])
+    def end(x, y):  # states [2, 6] of both cars at x (m) and lateral positions y (m), at 29 m/s
+        return np.array([[x, yk, 29.0, 0.0, 0.0, 0.0] for yk in y])
+    np.testing.assert_allclose(lateness(start_y, end(CUTOFF_X - 100.0, start_y)), 0.0)  # 3.4 s from the cutoff
+    near = CUTOFF_X - 40.0  # 1.4 s from the cutoff
+    np.testing.assert_allclose(lateness(start_y, end(near, start_y)), 1.0)  # still on the lane's centre line
+    np.testing.assert_allclose(lateness(start_y, end(near, [SWAP_THRESHOLD_Y + 1e-6, SWAP_THRESHOLD_Y - 1e-6])), 0.5, atol=1e-6)
+    np.testing.assert_allclose(lateness(start_y, end(near, start_y[::-1])), 0.0)  # across: not late
+    halfway = (start_y + SWAP_THRESHOLD_Y) / 2
+    np.testing.assert_allclose(lateness(start_y, end(near, halfway)), 0.75)
+
+
+def test_a_late_driver_model_takes_the_proposal_that_gets_farthest_across():
+    driver = load_model("driver")
+    agent = ModelDriver(driver)
+    histories, futures = _driver_situation()
+    histories[:, :, 1, 0] = CUTOFF_X - 90.0  # late whatever it does: none of these crosses within 1.5 s
+    agent.reset(np.random.default_rng(0), histories[:, 0], me=1)
+    agent.others = lambda h: np.repeat(futures[None], agent.anticipation, axis=0)
+    agent.proposals = 3
+    agent.model.sample_futures = _proposing(driver, (0.0, 0.0), (0.0, -1.5), (0.0, -0.5))
+    np.testing.assert_allclose(agent.sample(histories, futures)[0, :, 1], -1.5, atol=1e-5)
+
+
+def test_keeping_on_the_road_steers_a_drifting_car_back_to_its_lane_and_keeps_the_pedal():
+    present = np.array([[-50.0, -1.2, 29.0, 0.6, 0.0, 0.3],    # drifting out over the left edge
+                        [-50.0, -7.4, 29.0, -0.8, 0.0, -1.0]])  # and over the right edge
+    held = np.repeat(present[:, None, 4:6], HORIZON, axis=1)  # [2, 15, 2]: holding on leaves the road
+    assert not on_road(future_states(present, held)[..., 1]).all()
+    kept = keep_on_road(present, held)
+    np.testing.assert_array_equal(kept[..., 0], held[..., 0])
+    y = future_states(present, kept)[..., 1]
+    assert on_road(y).all()
+    np.testing.assert_allclose(y[:, -1], [LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]], atol=0.2)

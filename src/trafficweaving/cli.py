@@ -279,6 +279,34 @@ def cmd_crossval(args) -> None:
     _emit(args, payload, "\n".join(lines))
 
 
+def cmd_mix(args) -> None:
+    """A mixture of a model with a companion at a given weight (and of its fold models)."""
+    from .model.checkpoint import load_model, model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
+    from .model.crossval import out_of_fold_models
+    from .model.mixture import Mixture, conditioned_like
+
+    if (args.folds is None) != (args.out_folds is None):
+        raise InputError("mix: --folds and --out-folds go together (the fold models to mix, and where to write them)")
+    out = check_output_file(args.out, "--out")
+    out_folds = check_output_folder(args.out_folds, "--out-folds") if args.out_folds is not None else None
+    path = model_path(args.model)
+    payload = read_checkpoint(path)
+    if "mixture" in payload:
+        raise InputError(f"--model {path}: is a mixture already (expected one model to mix with --companion)")
+    model = model_from_checkpoint(payload, path)
+    companion = conditioned_like(load_model(_model_spec(args.companion, "--companion")), model)
+    folds = out_of_fold_models(args.folds) if args.folds is not None else []
+    recipe = {"companion": args.companion, "weight": args.weight}
+    mixed = lambda m: Mixture([m, companion], [args.weight, 1.0 - args.weight])  # noqa: E731
+    kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict")}
+    save_checkpoint(out, mixed(model), **kept, mixture_recipe=recipe)
+    for k, (fold_model, held) in enumerate(folds):
+        save_checkpoint(out_folds / f"fold_{k + 1}.pt", mixed(fold_model), held_out_trials=held, mixture_recipe=recipe)
+    written = f" and {len(folds)} fold models in {out_folds}" if folds else ""
+    _emit(args, {"out": str(out), **recipe, "folds": len(folds)},
+          f"mixed {args.model} ({args.weight:g}) with {args.companion} ({1 - args.weight:g}) -> {out}{written}")
+
+
 def cmd_calibrate(args) -> None:
     from .data.trials import load_trials
     from .model.calibrate import calibrate, calibrated, scale_of
@@ -651,6 +679,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("mix", help="a mixture of a model with a companion model at a given weight (docs/realism.md)")
+    p.add_argument("--model", required=True, help="the first component: a checkpoint or a shipped model's name")
+    p.add_argument("--companion", required=True, help="the second component (e.g. authors:PATH), conditioned like --model")
+    p.add_argument("--weight", required=True, type=_float_in(0, 1), help="--model's weight, strictly between 0 and 1")
+    p.add_argument("--out", required=True, help="the mixture's checkpoint")
+    p.add_argument("--folds", help="also mix the fold models of `crossval --out` in this folder ...")
+    p.add_argument("--out-folds", help="... and write them here (for out-of-fold reports: `realism --folds`)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_mix)
 
     p = sub.add_parser("evaluate", help="NLL, coverage and displacement errors of a human model on every human agent of a dataset")
     p.add_argument("--model", default="default", help="checkpoint path, default, or authors:PATH")

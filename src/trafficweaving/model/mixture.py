@@ -13,6 +13,7 @@ batch serves all) and the conditioning on the robot's future; each keeps its own
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Sequence
 
 import torch
@@ -97,6 +98,16 @@ class Mixture(nn.Module):
             if len(rows):
                 out[rows] = component.sample_futures(batch, len(rows), generator).to(out.dtype)
         return out
+
+
+def conditioned_like(companion: CVAE, model: CVAE) -> CVAE:
+    """``companion`` conditioned on the robot future ``model`` is (:attr:`CVAEConfig.robot_future`),
+    weights kept, so that the two mix: e.g. the authors' model, trained on recorded futures, given
+    the guess a driver model drives with (as ``train --init authors:PATH --robot-future guess``
+    starts from it)."""
+    if companion.config.robot_future != model.config.robot_future:
+        companion.config = replace(companion.config, robot_future=model.config.robot_future)
+    return companion
 
 
 def describe(model: CVAE | Mixture) -> str:

@@ -27,7 +27,9 @@ from ..dynamics import constant_acceleration_future, future_states
 from ..errors import InputError
 from ..model.checkpoint import load_model
 from ..model.cvae import CVAE
-from ..scenario import CUTOFF_X, DT, HORIZON, MIN_HISTORY, across_divider, colliding, lane_of, on_road
+from ..planning.steering import steer
+from ..scenario import (CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, MIN_HISTORY, SWAP_THRESHOLD_Y, across_divider, colliding,
+                        lane_of, on_road)
 from .drivers import DriverAgents, DriverModel, DriverStyles
 from .robots import RuleBasedRobot
 from .world import Agent
@@ -47,6 +49,36 @@ DEADLINE_S = 2.0
 """A driver model's proposal is late when it leaves the car short of the divider less than this
 many seconds before the cutoff (at its speed then): about how long the real drivers take from
 starting a lane change to crossing the divider (1.9 s median, :func:`~trafficweaving.data.behaviour.lane_change_events`)."""
+
+LATE_RISK = 0.5
+"""A driver model's risk (in collisions) of a late proposal that leaves the car on its lane's centre
+line; one that leaves it nearer the divider costs proportionally less, down to half at the divider
+(:func:`lateness`)."""
+
+
+def lateness(start_y: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """How late proposals are, in [0, 1] (0: on time), for cars that started at ``start_y [m]`` (m)
+    and that the proposals leave at states ``end [..., m, 6]`` 1.5 s ahead. A proposal is late when
+    it leaves the car short of the divider less than :data:`DEADLINE_S` before the cutoff at its
+    speed then; it is then the later the farther it leaves the car from the divider: 1/2 at the
+    divider, 1 where the car started (its lane's centre line) or farther. Under time pressure a
+    driver picks the proposal that gets farthest across."""
+    late = ~across_divider(start_y, end[..., 1]) & (CUTOFF_X - end[..., 0] < DEADLINE_S * end[..., 2])
+    short = np.clip((SWAP_THRESHOLD_Y - end[..., 1]) / (SWAP_THRESHOLD_Y - start_y), 0.0, 1.0)  # share of the way left
+    return late * (0.5 + 0.5 * short)
+
+
+def keep_on_road(present: np.ndarray, accelerations: np.ndarray) -> np.ndarray:
+    """``accelerations [n, N, 2]`` (m/s², steps t+1..t+N) of cars at ``present [n, 6]`` with the
+    lateral part replaced by the planner's optimal steering (:func:`~trafficweaving.planning.steering.steer`,
+    paper §V-C) to the centre of the lane each car is in: how a driver about to leave the road
+    steers back, keeping its pedal."""
+    n, steps, _ = accelerations.shape
+    targets = np.array([LANE_CENTRE_Y[lane] for lane in lane_of(present[:, 1])])
+    path = steer(present[:, [1, 3, 5]], targets, DT * np.arange(1, steps + 1))  # [n, N, 4]
+    kept = accelerations.copy()
+    kept[..., 1] = path[..., 2]
+    return kept
 
 
 class SyntheticDrivers:
@@ -93,15 +125,17 @@ class ModelDriver:
     ``proposals`` > 1 samples that many futures per episode and executes the one with the least
     risk: the share of the robot's futures its 1.5 s of own positions (from its present state)
     collide with, leaving the road counting as more than any collision; among equally risky ones
-    the first, or when all are unsafe the one whose first danger comes latest. The robot's futures:
-    the one it is conditioned on and, with ``anticipation`` > 0, that many the model predicts for
-    the robot (:meth:`others`: each car sampling the other's future from its own model); such a
-    driver also knows the task: a proposal that leaves it short of the divider too near the
-    cutoff (:data:`DEADLINE_S`) counts as half a collision. That is the model's distribution
-    conditioned on a safe near future, as a driver who sees a collision coming picks another
-    action. Defaults: :data:`DRIVER_PROPOSALS` and :data:`DRIVER_ANTICIPATION` for a driver model
-    (one conditioned on the guess, ``CVAEConfig.robot_future == "guess"``), 1 and 0 (plain
-    samples) for the paper's models.
+    the first, or when all are unsafe the one whose first danger comes latest; when every one
+    leaves the road, that one's pedal with the steering back to its lane's centre
+    (:func:`keep_on_road`). The robot's futures: the one it is conditioned on and, with
+    ``anticipation`` > 0, that many the model predicts for the robot (:meth:`others`: each car
+    sampling the other's future from its own model); such a driver also knows the task: a proposal
+    that leaves it short of the divider too near the cutoff (:data:`DEADLINE_S`) counts as up to
+    half a collision, the less the nearer the divider it gets (:func:`lateness`). That is the
+    model's distribution conditioned on a safe near future, as a driver who sees a collision coming
+    picks another action. Defaults: :data:`DRIVER_PROPOSALS` and :data:`DRIVER_ANTICIPATION` for
+    a driver model (one conditioned on the guess, ``CVAEConfig.robot_future == "guess"``), 1 and 0
+    (plain samples) for the paper's models.
 
     The robot's future: by default the guess :func:`constant_acceleration_future` (the robot holds
     its present acceleration). With ``robot_plan=True`` the simulation tells it the robot's plan:
@@ -181,10 +215,13 @@ class ModelDriver:
             risk = hits.any(-1).mean(1) + 2.0 * off.any(-1) + 1e-3 * (HORIZON - first) / HORIZON  # [K, m]
             if self.anticipation:
                 end = own[:, :, -1]  # [K, m, 6]: where each proposal leaves the car in 1.5 s
-                late = ~across_divider(self.start_y, end[..., 1]) & (CUTOFF_X - end[..., 0] < DEADLINE_S * end[..., 2])
-                risk = risk + 0.5 * late
+                risk = risk + LATE_RISK * lateness(self.start_y, own[:, :, -1])
             pick = risk.argmin(0)
-        return samples[pick, np.arange(len(histories)), : self.BLOCK]
+        chosen = samples[pick, np.arange(len(histories))]  # [m, 15, 2]
+        if self.proposals > 1:
+            leaves = off[pick, np.arange(len(histories))].any(-1)  # every proposal leaves the road
+            chosen[leaves] = keep_on_road(histories[leaves, -1, 1], chosen[leaves])
+        return chosen[:, : self.BLOCK]
 
     def _futures(self, histories: np.ndarray, robot_futures: np.ndarray, k: int) -> np.ndarray:
         """``k`` sampled futures ``[k, m, 15, 2]`` (m/s²) of the human's accelerations for robot-first
