@@ -57,25 +57,25 @@ line; one that leaves it nearer the divider costs proportionally less, down to h
 
 
 def lateness(start_y: np.ndarray, end: np.ndarray) -> np.ndarray:
-    """How late proposals are, in [0, 1] (0: on time), for cars that started at ``start_y [m]`` (m)
-    and that the proposals leave at states ``end [..., m, 6]`` 1.5 s ahead. A proposal is late when
-    it leaves the car short of the divider less than :data:`DEADLINE_S` before the cutoff at its
-    speed then; it is then the later the farther it leaves the car from the divider: 1/2 at the
-    divider, 1 where the car started (its lane's centre line) or farther. Under time pressure a
-    driver picks the proposal that gets farthest across."""
+    """How late proposals are, in [0, 1] (0: on time), for cars that started at lateral positions
+    ``start_y [m]`` (metres) and that the proposals leave at states ``end [..., m, 6]`` 1.5 s
+    ahead. A proposal is late when it leaves the car short of the divider less than
+    :data:`DEADLINE_S` before the cutoff at its speed then; it is then the later the farther it
+    leaves the car from the divider: 1/2 at the divider, 1 on the centre line of the lane it
+    started in, or farther. Under time pressure a driver picks the proposal that gets farthest across."""
     late = ~across_divider(start_y, end[..., 1]) & (CUTOFF_X - end[..., 0] < DEADLINE_S * end[..., 2])
-    short = np.clip((SWAP_THRESHOLD_Y - end[..., 1]) / (SWAP_THRESHOLD_Y - start_y), 0.0, 1.0)  # share of the way left
+    centre = np.where(lane_of(start_y) == "left", LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"])  # [m] the lane left
+    short = np.clip((SWAP_THRESHOLD_Y - end[..., 1]) / (SWAP_THRESHOLD_Y - centre), 0.0, 1.0)  # share of the way left
     return late * (0.5 + 0.5 * short)
 
 
 def keep_on_road(present: np.ndarray, accelerations: np.ndarray) -> np.ndarray:
     """``accelerations [n, N, 2]`` (m/s², steps t+1..t+N) of cars at ``present [n, 6]`` with the
-    lateral part replaced by the planner's optimal steering (:func:`~trafficweaving.planning.steering.steer`,
-    paper §V-C) to the centre of the lane each car is in: how a driver about to leave the road
-    steers back, keeping its pedal."""
-    n, steps, _ = accelerations.shape
+    lateral part replaced by the planner's optimal steering
+    (:func:`~trafficweaving.planning.steering.steer`, paper §V-C) to the centre of the lane each car
+    is in: how a driver about to leave the road steers back, keeping its pedal."""
     targets = np.array([LANE_CENTRE_Y[lane] for lane in lane_of(present[:, 1])])
-    path = steer(present[:, [1, 3, 5]], targets, DT * np.arange(1, steps + 1))  # [n, N, 4]
+    path = steer(present[:, [1, 3, 5]], targets, DT * np.arange(1, accelerations.shape[1] + 1))  # [n, N, 4]
     kept = accelerations.copy()
     kept[..., 1] = path[..., 2]
     return kept
@@ -202,7 +202,7 @@ class ModelDriver:
         """The next block's accelerations ``[m, 3, 2]`` (m/s²), one model sample per episode, for
         robot-first ``histories [m, t+1, 2, 6]`` and ``robot_futures [m, 15, 6]``."""
         samples = self._futures(histories, robot_futures, self.proposals)  # [K, m, 15, 2]
-        pick = np.zeros(len(histories), dtype=int)
+        chosen = samples[0]
         if self.proposals > 1:
             own = future_states(histories[:, -1, 1], samples)  # [K, m, 15, 6]
             others = robot_futures[None]
@@ -214,12 +214,10 @@ class ModelDriver:
             first = np.where(unsafe.any(-1), unsafe.argmax(-1), HORIZON)  # first unsafe step; 15: none
             risk = hits.any(-1).mean(1) + 2.0 * off.any(-1) + 1e-3 * (HORIZON - first) / HORIZON  # [K, m]
             if self.anticipation:
-                end = own[:, :, -1]  # [K, m, 6]: where each proposal leaves the car in 1.5 s
-                risk = risk + LATE_RISK * lateness(self.start_y, own[:, :, -1])
-            pick = risk.argmin(0)
-        chosen = samples[pick, np.arange(len(histories))]  # [m, 15, 2]
-        if self.proposals > 1:
-            leaves = off[pick, np.arange(len(histories))].any(-1)  # every proposal leaves the road
+                risk = risk + LATE_RISK * lateness(self.start_y, own[:, :, -1])  # where each leaves the car in 1.5 s
+            pick, rows = risk.argmin(0), np.arange(len(histories))
+            chosen = samples[pick, rows]  # [m, 15, 2]
+            leaves = off[pick, rows].any(-1)  # every proposal leaves the road
             chosen[leaves] = keep_on_road(histories[leaves, -1, 1], chosen[leaves])
         return chosen[:, : self.BLOCK]
 
