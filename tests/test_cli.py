@@ -272,6 +272,9 @@ def test_mix_writes_a_mixture_with_a_companion_conditioned_like_the_model(capsys
     code, _, err = run(capsys, "mix", "--model", model, "--companion", companion, "--weight", 0.5, "--out", tmp_path / "y.pt",
                        "--folds", folds)
     assert code == 2 and "--folds and --out-folds go together" in err and not (tmp_path / "y.pt").exists()
+    code, _, err = run(capsys, "mix", "--model", model, "--companion", tmp_path / "x.pt", "--weight", 0.5, "--out",
+                       tmp_path / "y.pt")
+    assert code == 2 and "is a mixture (expected one model)" in err and err.count("\n") == 1
     code, _, err = run(capsys, "mix", "--model", model, "--companion", companion, "--weight", 1, "--out", tmp_path / "y.pt")
     assert code == 2 and "(0, 1)" in err
 

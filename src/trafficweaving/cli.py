@@ -283,7 +283,7 @@ def cmd_mix(args) -> None:
     """A mixture of a model with a companion at a given weight (and of its fold models)."""
     from .model.checkpoint import load_model, model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
     from .model.crossval import out_of_fold_models
-    from .model.mixture import Mixture, conditioned_like
+    from .model.mixture import Mixture, conditioned_on
 
     if (args.folds is None) != (args.out_folds is None):
         raise InputError("mix: --folds and --out-folds go together (the fold models to mix, and where to write them)")
@@ -294,10 +294,19 @@ def cmd_mix(args) -> None:
     if "mixture" in payload:
         raise InputError(f"--model {path}: is a mixture already (expected one model to mix with --companion)")
     model = model_from_checkpoint(payload, path)
-    companion = conditioned_like(load_model(_model_spec(args.companion, "--companion")), model)
+    companion = load_model(_model_spec(args.companion, "--companion"))
+    if isinstance(companion, Mixture):
+        raise InputError(f"--companion {args.companion}: is a mixture (expected one model)")
+    companion = conditioned_on(companion, model.config.robot_future)
     folds = out_of_fold_models(args.folds) if args.folds is not None else []
     recipe = {"companion": args.companion, "weight": args.weight}
-    mixed = lambda m: Mixture([m, companion], [args.weight, 1.0 - args.weight])  # noqa: E731
+
+    def mixed(m):
+        try:
+            return Mixture([m, companion], [args.weight, 1.0 - args.weight])
+        except ValueError as exc:
+            raise InputError(f"--companion {args.companion}: {exc}") from None
+
     kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict")}
     save_checkpoint(out, mixed(model), **kept, mixture_recipe=recipe)
     for k, (fold_model, held) in enumerate(folds):

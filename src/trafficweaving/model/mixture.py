@@ -100,14 +100,13 @@ class Mixture(nn.Module):
         return out
 
 
-def conditioned_like(companion: CVAE, model: CVAE) -> CVAE:
-    """``companion`` conditioned on the robot future ``model`` is (:attr:`CVAEConfig.robot_future`),
-    weights kept, so that the two mix: e.g. the authors' model, trained on recorded futures, given
-    the guess a driver model drives with (as ``train --init authors:PATH --robot-future guess``
-    starts from it)."""
-    if companion.config.robot_future != model.config.robot_future:
-        companion.config = replace(companion.config, robot_future=model.config.robot_future)
-    return companion
+def conditioned_on(model: CVAE, robot_future: str) -> CVAE:
+    """``model`` conditioned on ``robot_future`` (:attr:`CVAEConfig.robot_future`), weights kept:
+    e.g. the authors' model, trained on recorded futures, given the guess a driver model drives with
+    (``train --init authors:PATH --robot-future guess`` starts from it; ``mix`` mixes it so)."""
+    if model.config.robot_future != robot_future:
+        model.config = replace(model.config, robot_future=robot_future)
+    return model
 
 
 def describe(model: CVAE | Mixture) -> str:

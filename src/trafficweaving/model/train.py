@@ -28,7 +28,7 @@ from ..data.trials import TrialSet
 from ..errors import InputError
 from ..scenario import MIN_TRIAL_STEPS, STATE_NAMES
 from .checkpoint import model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
-from .mixture import Mixture
+from .mixture import Mixture, conditioned_on
 from .cvae import CVAE, Batch, CVAEConfig
 from .evaluate import evaluate_tensors
 from .exemplars import ExemplarSet, build_exemplars, split_by_trial, state_statistics
@@ -276,7 +276,7 @@ def initial_model(init: str | Path, variant: str | None, robot_future: str | Non
                          f"(expected a checkpoint of the same variant, or a cvae model for --variant cvae-hold)")
     if robot_future is not None and robot_future != model.config.robot_future:
         provenance["robot_future"] = model.config.robot_future
-        model.config = replace(model.config, robot_future=robot_future)
+        model = conditioned_on(model, robot_future)
     return model.set_calibration(1.0, 1.0), provenance
 
 
