@@ -5,7 +5,7 @@ import pytest
 
 from trafficweaving.scenario import (
     BASE_SPEED, COLLISION_DX, CUTOFF_X, LANE_CENTRE_Y, START_X, VALIDITY_REASONS,
-    check_validity, lane_of, study_initial_conditions,
+    check_validity, lane_centre_y, lane_of, study_initial_conditions,
 )
 
 
@@ -83,3 +83,4 @@ def test_steps_past_the_length_are_ignored():
 
 def test_lane_of():
     assert lane_of(np.array([-1.83, -3.9, -4.0, -6.09])).tolist() == ["left", "left", "right", "right"]
+    assert lane_centre_y(np.array([[-1.0, -3.9], [-4.0, -7.5]])).tolist() == [[-1.83, -1.83], [-6.09, -6.09]]

@@ -307,8 +307,7 @@ def cmd_mix(args) -> None:
         except ValueError as exc:
             raise InputError(f"--companion {args.companion}: {exc}") from None
 
-    kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict")}
-    save_checkpoint(out, mixed(model), **kept, mixture_recipe=recipe)
+    save_checkpoint(out, mixed(model), **{**payload, "mixture_recipe": recipe})  # the model's own fields replaced
     for k, (fold_model, held) in enumerate(folds):
         save_checkpoint(out_folds / f"fold_{k + 1}.pt", mixed(fold_model), held_out_trials=held, mixture_recipe=recipe)
     written = f" and {len(folds)} fold models in {out_folds}" if folds else ""

@@ -212,3 +212,8 @@ def across_divider(y_start: np.ndarray, y: np.ndarray) -> np.ndarray:
 def lane_of(y: np.ndarray) -> np.ndarray:
     """Lane name (``"left"``/``"right"``) for lateral positions ``y`` (m), any shape."""
     return np.where(np.asarray(y) > LANE_DIVIDER_Y, "left", "right")
+
+
+def lane_centre_y(y: np.ndarray) -> np.ndarray:
+    """The centre line (m) of the lane each lateral position ``y`` (m, any shape) is in (:func:`lane_of`)."""
+    return np.where(np.asarray(y) > LANE_DIVIDER_Y, LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"])

@@ -28,7 +28,7 @@ from ..errors import InputError
 from ..model.checkpoint import load_model
 from ..model.cvae import CVAE
 from ..planning.steering import steer
-from ..scenario import (CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, MIN_HISTORY, SWAP_THRESHOLD_Y, across_divider, colliding,
+from ..scenario import (CUTOFF_X, DT, HORIZON, MIN_HISTORY, SWAP_THRESHOLD_Y, across_divider, colliding, lane_centre_y,
                         lane_of, on_road)
 from .drivers import DriverAgents, DriverModel, DriverStyles
 from .robots import RuleBasedRobot
@@ -64,8 +64,7 @@ def lateness(start_y: np.ndarray, end: np.ndarray) -> np.ndarray:
     leaves the car from the divider: 1/2 at the divider, 1 on the centre line of the lane it
     started in, or farther. Under time pressure a driver picks the proposal that gets farthest across."""
     late = ~across_divider(start_y, end[..., 1]) & (CUTOFF_X - end[..., 0] < DEADLINE_S * end[..., 2])
-    centre = np.where(lane_of(start_y) == "left", LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"])  # [m] the lane left
-    short = np.clip((SWAP_THRESHOLD_Y - end[..., 1]) / (SWAP_THRESHOLD_Y - centre), 0.0, 1.0)  # share of the way left
+    short = np.clip((SWAP_THRESHOLD_Y - end[..., 1]) / (SWAP_THRESHOLD_Y - lane_centre_y(start_y)), 0.0, 1.0)  # still to go
     return late * (0.5 + 0.5 * short)
 
 
@@ -74,8 +73,7 @@ def keep_on_road(present: np.ndarray, accelerations: np.ndarray) -> np.ndarray:
     lateral part replaced by the planner's optimal steering
     (:func:`~trafficweaving.planning.steering.steer`, paper §V-C) to the centre of the lane each car
     is in: how a driver about to leave the road steers back, keeping its pedal."""
-    targets = np.array([LANE_CENTRE_Y[lane] for lane in lane_of(present[:, 1])])
-    path = steer(present[:, [1, 3, 5]], targets, DT * np.arange(1, accelerations.shape[1] + 1))  # [n, N, 4]
+    path = steer(present[:, [1, 3, 5]], lane_centre_y(present[:, 1]), DT * np.arange(1, accelerations.shape[1] + 1))
     kept = accelerations.copy()
     kept[..., 1] = path[..., 2]
     return kept
@@ -218,7 +216,8 @@ class ModelDriver:
             pick, rows = risk.argmin(0), np.arange(len(histories))
             chosen = samples[pick, rows]  # [m, 15, 2]
             leaves = off[pick, rows].any(-1)  # every proposal leaves the road
-            chosen[leaves] = keep_on_road(histories[leaves, -1, 1], chosen[leaves])
+            if leaves.any():
+                chosen[leaves] = keep_on_road(histories[leaves, -1, 1], chosen[leaves])
         return chosen[:, : self.BLOCK]
 
     def _futures(self, histories: np.ndarray, robot_futures: np.ndarray, k: int) -> np.ndarray:
