@@ -14,13 +14,23 @@ simulation steps (mean, p99, max; the target is 0.100 s), the planner's latencie
 max), how many plans were late (a window started without its plan) and how many took longer than
 the 0.3 s replanning period. One JSON object with ``--json``.
 
+With ``--rooms N`` it measures human–human rooms instead: the server in ``human-human`` mode and
+``N`` rooms of two pages each, all driving at once for ``--seconds`` of driving per room. The
+pages are WebSocket clients in a separate process (as browsers would be), each sending its car's
+controls 20 times a second as the page does (car A's person speeds up and changes lanes, car B's
+brakes, then changes lanes behind it). It prints the step period of all rooms' trials (p50,
+mean, p99, max).
+
     python benchmarks/bench_drive.py [--seconds 60] [--driver websocket|browser] [--threads N] [--seed 0] [--json]
+    python benchmarks/bench_drive.py --rooms 20 [--seconds 60] [--seed 0] [--json]
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
+import multiprocessing
 import os
 import tempfile
 import threading
@@ -31,8 +41,8 @@ import numpy as np
 
 from trafficweaving.data.trials import load_trials
 from trafficweaving.scenario import DT, LANE_CENTRE_Y, LANE_DIVIDER_Y, REPLAN_PERIOD_S
+from trafficweaving.web.room import CONTROL_INTERVAL_S, DriveConfig
 from trafficweaving.web.server import build_server, default_threads
-from trafficweaving.web.session import DriveConfig
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
@@ -121,6 +131,118 @@ def drive_browser(url: str, seconds: float, rng: np.random.Generator) -> None:
         browser.close()
 
 
+class PairPerson:
+    """One of a pair's drivers for one trial: car A's (``leader``) holds a throttle for a while and
+    changes lanes from an early step; car B's brakes at first and changes lanes later, behind it."""
+
+    def __init__(self, rng: np.random.Generator, start_y: float, leader: bool):
+        self.leader = leader
+        self.pedal = float(rng.uniform(0.6, 1.0))
+        self.pedal_steps = int(rng.integers(15, 26)) if leader else int(rng.integers(5, 10))
+        self.swap_at = int(rng.integers(10, 15)) if leader else int(rng.integers(25, 31))
+        self.target = LANE_CENTRE_Y["left"] if start_y < LANE_DIVIDER_Y else LANE_CENTRE_Y["right"]
+
+    def controls(self, step: int, state) -> dict:
+        steer = max(-1.0, min(1.0, 0.5 * (state[1] - self.target) + 0.3 * state[3])) if step >= self.swap_at else 0.0
+        pedal = self.pedal if step < self.pedal_steps else 0.0
+        return {"throttle": pedal if self.leader else 0.0, "brake": 0.0 if self.leader else pedal, "steer": steer}
+
+
+async def _page(ws, starts: bool, seconds: float, rng: np.random.Generator) -> None:
+    """One page of a room: trial after trial (``starts``: this page sends ``start``) until
+    ``seconds`` of driving are done, its car's controls sent every ``CONTROL_INTERVAL_S``."""
+    loop = asyncio.get_running_loop()
+    driven = 0.0
+    while driven < seconds:
+        if starts:
+            await ws.send(json.dumps({"type": "start"}))
+        while (started := json.loads(await ws.recv()))["type"] != "started":
+            pass
+        car = started["cars"][0]
+        person, state, seq = PairPerson(rng, started["states"][car][1], car == 0), None, 0
+        next_send = loop.time()
+        while True:
+            try:
+                message = json.loads(await asyncio.wait_for(ws.recv(), max(0.0, next_send - loop.time())))
+            except asyncio.TimeoutError:
+                if state is not None:
+                    seq += 1
+                    await ws.send(json.dumps({"type": "controls", "seq": seq, "car": car,
+                                              **person.controls(state["step"], state["cars"][car])}))
+                next_send += CONTROL_INTERVAL_S
+                continue
+            if message["type"] == "state":
+                state = message
+            elif message["type"] == "ended":
+                driven += message["steps"] * DT
+                break
+
+
+async def _room(url: str, seconds: float, seed: int) -> None:
+    from websockets.asyncio.client import connect
+
+    ws_url = url.replace("http://", "ws://") + "ws"
+    async with connect(ws_url, max_size=None) as first:
+        await first.recv()  # welcome
+        room = json.loads(await first.recv())
+        async with connect(ws_url + "?" + room["join"].split("?", 1)[1], max_size=None) as second:
+            await second.recv()  # welcome
+            await asyncio.gather(_page(first, True, seconds, np.random.default_rng([seed, 0])),
+                                 _page(second, False, seconds, np.random.default_rng([seed, 1])))
+
+
+def drive_rooms(url: str, rooms: int, seconds: float, seed: int) -> None:
+    """``rooms`` rooms of two pages at once (run in a process of its own, as browsers are)."""
+    async def run() -> None:
+        await asyncio.gather(*(_room(url, seconds, seed * 1000 + k) for k in range(rooms)))
+
+    asyncio.run(run())
+
+
+def summarise_rooms(files: list[Path]) -> dict:
+    """The step periods of human–human trials (all rooms together)."""
+    periods, steps, reasons = [], 0, {}
+    for path in files:
+        record = load_trials(path).metadata["drive"]
+        periods += record["step_periods_s"]
+        steps += record["step_period"]["steps"]
+        reasons[record["reason"]] = reasons.get(record["reason"], 0) + 1
+    periods = np.array(periods)
+    return {
+        "trials": len(files),
+        "reasons": reasons,
+        "steps": steps,
+        "driven_s": round(steps * DT, 1),
+        "step_period_s": {"p50": float(np.median(periods)), "mean": float(periods.mean()),
+                          "p99": float(np.percentile(periods, 99)), "max": float(periods.max()),
+                          "over_110ms": int((periods > 0.11).sum())},
+    }
+
+
+def bench_rooms(args) -> dict:
+    with tempfile.TemporaryDirectory() as scratch:
+        out = Path(args.out or scratch)
+        server = build_server(DriveConfig(mode="human-human", countdown_s=0), "127.0.0.1", 0, str(out))
+        thread = threading.Thread(target=server.run, daemon=True)
+        thread.start()
+        while not server.server.started:
+            time.sleep(0.02)
+        began = time.perf_counter()
+        pages = multiprocessing.get_context("spawn").Process(target=drive_rooms,
+                                                             args=(server.url, args.rooms, args.seconds, args.seed))
+        try:
+            pages.start()
+            pages.join()
+        finally:
+            server.server.should_exit = True
+            thread.join(15)
+            server.close()
+        if pages.exitcode != 0:
+            raise SystemExit(f"the pages' process failed (exit status {pages.exitcode})")
+        return {"rooms": args.rooms, "cpus": os.cpu_count(), "wall_s": round(time.perf_counter() - began, 1),
+                **summarise_rooms(sorted(out.glob("drive_*.parquet")))}
+
+
 def summarise(files: list[Path]) -> dict:
     periods, latencies, late, windows, steps = [], [], 0, 0, 0
     for path in files:
@@ -154,8 +276,25 @@ def main() -> None:
                         help="planner torch threads (default: as trafficweaving drive, all cores but one)")
     parser.add_argument("--seed", type=int, default=0, help="the scripted person's choices")
     parser.add_argument("--out", help="keep the recorded trials in this folder (default: a temporary one)")
+    parser.add_argument("--rooms", type=int, help="measure this many human-human rooms at once instead (two "
+                                                  "scripted pages each)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
+    if args.rooms is not None:
+        if args.rooms < 1:
+            parser.error(f"argument --rooms: expected an integer >= 1, got {args.rooms}")
+        result = bench_rooms(args)
+        if args.json:
+            print(json.dumps(result))
+            return
+        period = result["step_period_s"]
+        print(f"{result['rooms']} human-human rooms at once on {result['cpus']} CPUs: {result['trials']} trials, "
+              f"{result['steps']} steps ({result['driven_s']} s driven; ends: "
+              f"{', '.join(f'{k} {v}' for k, v in sorted(result['reasons'].items()))})")
+        print(f"step period: p50 {1000 * period['p50']:.1f} ms, mean {1000 * period['mean']:.1f} ms, "
+              f"p99 {1000 * period['p99']:.1f} ms, max {1000 * period['max']:.1f} ms "
+              f"({period['over_110ms']} over 110 ms)")
+        return
 
     with tempfile.TemporaryDirectory() as scratch:
         out = Path(args.out or scratch)

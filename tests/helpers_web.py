@@ -13,13 +13,14 @@ from websockets.sync.client import connect
 
 from trafficweaving.scenario import LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.web.server import build_server
-from trafficweaving.web.session import DriveConfig
+from trafficweaving.web.room import DriveConfig
 
 
 @contextmanager
-def drive_server(out, mode: str = "robot", countdown: int = 0):
-    """A running drive server recording into ``out``; yields its URL (``http://127.0.0.1:PORT/``)."""
-    server = build_server(DriveConfig(mode=mode, countdown_s=countdown), "127.0.0.1", 0, str(out))
+def drive_server(out, mode: str = "robot", countdown: int = 0, max_rooms: int = 64, host: str = "127.0.0.1"):
+    """A running drive server on ``host`` recording into ``out``; yields its URL
+    (``http://127.0.0.1:PORT/``; off loopback with ``?key=...``)."""
+    server = build_server(DriveConfig(mode=mode, countdown_s=countdown, max_rooms=max_rooms), host, 0, str(out))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 30
@@ -39,20 +40,14 @@ def ws_url(url: str) -> str:
 
 
 @contextmanager
-def client(url: str, patience: float = 10.0):
-    """A WebSocket connection to the server at ``url`` (the welcome message already read, in
-    ``.welcome``); while a previous connection's session is still closing on the server (it is
-    told "another page is driving"), it tries again for up to ``patience`` seconds."""
-    deadline = time.monotonic() + patience
-    while True:
-        with connect(ws_url(url), max_size=None, open_timeout=10) as ws:
-            first = receive(ws)
-            if first["type"] == "welcome":
-                ws.welcome = first
-                yield ws
-                return
-        assert time.monotonic() < deadline, first
-        time.sleep(0.1)
+def client(url: str, query: str = ""):
+    """A WebSocket connection to the server at ``url`` (``query``: e.g. a join link's
+    ``?room=N&token=T``), the welcome message already read (in ``.welcome``); it buffers every
+    message it has not read yet, so that closing it never waits on an unread backlog."""
+    with connect(ws_url(url) + query, max_size=None, max_queue=None, open_timeout=10) as ws:
+        ws.welcome = receive(ws)
+        assert ws.welcome["type"] == "welcome", ws.welcome
+        yield ws
 
 
 def receive(ws, timeout: float = 20.0) -> dict:

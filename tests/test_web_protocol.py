@@ -18,7 +18,6 @@ from websockets.sync.client import connect
 from helpers_web import client, drive_server, lane_change_steer, receive, send, ws_url
 from trafficweaving.data.trials import load_trials
 from trafficweaving.scenario import MIN_TRIAL_STEPS, study_initial_conditions
-from trafficweaving.web.app import BUSY_CLOSE_CODE
 from trafficweaving.web.protocol import MAX_MESSAGE_BYTES
 from trafficweaving.web.server import WS_MAX_FRAME_BYTES
 
@@ -89,8 +88,10 @@ def test_the_page_and_its_files_are_served(server):
 
     url, _ = server
     page = urllib.request.urlopen(url, timeout=10).read().decode()
-    assert "/static/drive.js" in page and "<canvas" in page and "http" not in page.replace(url, "").split("<body")[1]
-    script = urllib.request.urlopen(url + "static/drive.js", timeout=10).read().decode()
+    assert "<canvas" in page and "http" not in page.replace(url, "").split("<body")[1]
+    for name in ("drive", "draw", "input", "connection"):
+        assert f"/static/{name}.js" in page
+    script = urllib.request.urlopen(url + "static/connection.js", timeout=10).read().decode()
     assert "new WebSocket" in script
 
 
@@ -177,10 +178,13 @@ def test_a_closed_connection_ends_the_trial_and_keeps_what_was_recorded(server):
             while True:
                 receive(ws)
         assert closed.value.rcvd.code == 1009
-    # the page went away mid-trial; the next page gets the server and finds the record
+    # the page went away mid-trial; the next page gets the planner (at once, or once the server has
+    # seen the page go) and finds the record
     with client(url) as ws:
         send(ws, {"type": "start", "initial_condition": 0, "robot_car": 0})
-        assert receive(ws)["type"] == "started"
+        while (message := receive(ws))["type"] == "queued":
+            assert message["position"] == 1
+        assert message["type"] == "started"
         send(ws, {"type": "abort"})
         while (message := receive(ws))["type"] != "ended":
             pass
@@ -192,54 +196,36 @@ def test_a_closed_connection_ends_the_trial_and_keeps_what_was_recorded(server):
     assert list(trials.roles[0]) == ["human", "robot"]
 
 
-def test_one_page_drives_at_a_time(server):
+def test_a_second_page_waits_for_the_planner_in_a_queue(server):
     url, _ = server
-    with client(url):
-        with connect(ws_url(url), open_timeout=10) as second:
-            reply = receive(second)
-            assert reply["type"] == "error" and "another page is driving" in reply["error"]
-            with pytest.raises(ConnectionClosed) as closed:
-                second.recv(timeout=5)
-            assert closed.value.rcvd.code == BUSY_CLOSE_CODE
+    with client(url) as first, client(url) as second, client(url) as third:
+        send(first, {"type": "start", "initial_condition": IC, "robot_car": 0})
+        assert receive(first)["type"] == "started"
+        send(second, {"type": "start", "initial_condition": IC, "robot_car": 0})
+        assert receive(second) == {"type": "queued", "position": 1}
+        send(third, {"type": "start", "initial_condition": IC, "robot_car": 0})
+        assert receive(third) == {"type": "queued", "position": 2}
+        assert receive(second) == {"type": "queued", "position": 1}  # told again when the queue changed
+        send(second, {"type": "controls", "seq": 1, "car": 1, "throttle": 0, "brake": 0, "steer": 0})
+        assert "start first" in receive(second)["error"]  # no trial yet while queued
+        send(second, {"type": "abort"})  # leaves the queue
+        left = receive(second)
+        assert left["type"] == "ended" and left["trial"] is None and "queue" in left["note"]
+        assert receive(third) == {"type": "queued", "position": 1}
+        send(first, {"type": "abort"})
+        while receive(first)["type"] != "ended":
+            pass
+        started = receive(third)  # the planner's turn passed to the next page waiting
+        assert started["type"] == "started" and started["roles"] == ["robot", "human"] and started["cars"] == [1]
+        send(third, {"type": "abort"})
+        while receive(third)["type"] != "ended":
+            pass
 
 
 def test_a_page_from_another_origin_is_refused(server):
     url, _ = server
     with pytest.raises(InvalidStatus):
         connect(ws_url(url), origin="http://evil.example", open_timeout=5)
-
-
-def test_human_human_mode_records_two_humans(tmp_path):
-    with drive_server(tmp_path, mode="human-human") as url, client(url) as ws:
-        assert ws.welcome["mode"] == "human-human" and ws.welcome["planning"] is None
-        send(ws, {"type": "start", "initial_condition": IC, "robot_car": 1})
-        assert "null in human-human mode" in receive(ws)["error"]
-        send(ws, {"type": "start", "initial_condition": IC, "drivers": [3, 4]})
-        started = receive(ws)
-        assert started["roles"] == ["human", "human"] and started["robot_car"] is None
-        start_y = [car[1] for car in started["states"]]
-        seq = 0
-        while True:
-            message = receive(ws)
-            if message["type"] == "state":
-                assert "planner" not in message
-                seq += 1
-                a, b = message["cars"]
-                # car A (WASD), ahead, speeds up and changes lanes; car B (arrows) brakes to let it
-                # pass, then changes lanes behind it
-                step = message["step"]
-                send(ws, controls(seq, 0, throttle=1.0, steer=lane_change_steer(a, start_y[0]) if step > 8 else 0.0))
-                send(ws, controls(seq, 1, brake=0.5 if step < 12 else 0.0,
-                                  steer=lane_change_steer(b, start_y[1]) if step > 15 else 0.0))
-            elif message["type"] == "ended":
-                break
-    trials = load_trials(message["file"])
-    assert list(trials.roles[0]) == ["human", "human"] and list(trials.drivers[0]) == [3, 4]
-    metrics = trials.metadata["drive"]["metrics"]
-    assert metrics["outcome"] == "valid" and metrics["swapped"] == [True, True] and metrics["first"] == "A"
-    assert set(metrics) == {"outcome", "collision", "near_collision", "min_gap_m", "min_distance_m", "swapped", "first"}
-    assert "planner" not in trials.metadata["drive"]
-    assert set(trials.metadata["drive"]["controls"]["log"]) == {"0", "1"}
 
 
 def _cli(*args):

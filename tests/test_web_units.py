@@ -153,6 +153,8 @@ def test_two_idle_people_drive_to_the_end_without_swapping(tmp_path):
     assert trials.ic_dv[0] == ic.dv_left_minus_right and trials.ic_tco[0] == ic.tco
     assert trials.metadata["drive"] == {"note": "test"}
     assert Recorder(tmp_path).next_number() == 6
+    recorder = Recorder(tmp_path)  # rooms that start at once get different numbers before either writes
+    assert [recorder.reserve(), recorder.reserve()] == [6, 7]
 
 
 def test_a_collision_ends_the_trial_at_once():

@@ -161,6 +161,8 @@ def cmd_stats(args) -> None:
     from .data.stats import format_table1, table1
     from .data.trials import load_trials
 
+    if Path(args.data).is_dir():
+        return _stats_of_drives(args)
     trials = load_trials(args.data)
     reference = load_trials(args.reference) if args.reference else None
     t1 = table1(trials)
@@ -180,6 +182,24 @@ def cmd_stats(args) -> None:
         payload["behaviour_vs_reference"] = comparison
         text += [f"Human behaviour vs {args.reference}:", format_comparison(comparison)]
     _emit(args, payload, "\n".join(text))
+
+
+def _stats_of_drives(args) -> None:
+    """``stats DIR``: a folder of browser recordings (``trafficweaving drive``), the study's
+    progress: trials per pair (room session), completed and aborted, and Table I so far."""
+    from .data.stats import format_table1
+    from .web.recording import load_recordings
+    from .web.study import folder_progress, format_progress
+
+    if args.reference:
+        raise InputError("--reference: compares a dataset file's drivers (expected stats FILE.parquet --reference "
+                         "REF, not a folder)")
+    progress = folder_progress(load_recordings(args.data))
+    text = [f"{args.data}: trials recorded {progress['files']}, completed {progress['completed']}, aborted "
+            f"{progress['aborted']} (stopped, a page gone, a server error)", format_progress(progress),
+            f"Table I so far (completed human-human trials: {progress['human_human_completed']}):",
+            format_table1(progress["table1"], progress["table1_counts"])]
+    _emit(args, {"folder": str(args.data), **progress}, "\n".join(text))
 
 
 def cmd_plot(args) -> None:
@@ -557,8 +577,8 @@ def cmd_plot_episode(args) -> None:
 
 def cmd_drive(args) -> None:
     """The browser human-in-the-loop app (:mod:`trafficweaving.web`)."""
+    from .web.room import DriveConfig
     from .web.server import serve
-    from .web.session import DriveConfig
 
     config = DriveConfig(mode=args.mode, countdown_s=args.countdown, model=_model_spec(args.model, "--model"),
                          deadline=args.deadline, threads=args.threads)
@@ -628,8 +648,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_import)
 
-    p = sub.add_parser("stats", help="dataset summary: Table I and marginal driving behaviour")
-    p.add_argument("data", help="Parquet dataset")
+    p = sub.add_parser("stats", help="dataset summary: Table I and marginal driving behaviour (a drive folder: the "
+                                     "study's progress per pair)")
+    p.add_argument("data", help="Parquet dataset, or a folder of trafficweaving drive recordings")
     p.add_argument("--reference", help="a second dataset (e.g. imported real trials) to compare the humans with")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_stats)
@@ -786,13 +807,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_plot_episode)
 
-    p = sub.add_parser("drive", help="drive the human car against the planner in the browser (or two people: "
-                                     "--mode human-human)")
+    p = sub.add_parser("drive", help="drive the human car against the planner in the browser (or two people at "
+                                     "two browsers: --mode human-human)")
     p.add_argument("--port", type=_int_at_least(0, 65535), default=8000, help="TCP port (default 8000; 0: any free port)")
-    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only; "
+                   "another address needs the printed link's key and each room's token)")
     p.add_argument("--no-browser", action="store_true", help="do not open the page in the browser")
     p.add_argument("--mode", choices=MODES, default="robot",
-                   help="robot: a person against the planner; human-human: two people on one keyboard")
+                   help="robot: a person against the planner; human-human: rooms of two browsers, one person each")
     p.add_argument("--model", default="default", help="the planner's human model: checkpoint path, default, or authors:PATH")
     p.add_argument("--out", default="drives", help="folder the trials are recorded in (default: drives)")
     p.add_argument("--deadline", type=_float_in(0, REPLAN_PERIOD_S), default=PLAN_DEADLINE_S,

@@ -12,16 +12,25 @@ message and otherwise ignored):
   controls of the person driving car ``C``: ``throttle``, ``brake`` in [0, 1], ``steer`` in
   [-1, 1] (negative: left), ``seq`` an integer in 0..2⁵³ that increases from one message of a car
   to the next within a trial (a repeated or older ``seq`` is refused as out of order);
-* ``{"type": "abort"}`` ends the running trial (it is recorded like any other).
+* ``{"type": "abort"}`` ends the running trial (it is recorded like any other), or leaves the
+  planner's queue (robot mode);
+* ``{"type": "participant", "driver": N | null}`` (human–human rooms): the participant id of the
+  person at this page, an integer in 0..2³¹−1 (null: unknown), recorded in the ``driver`` column
+  of the car they drive.
+
+In a human–human room ``drivers`` is not sent with ``start`` (each page gives its own person's
+id with ``participant``), and a null ``initial_condition`` means the study protocol's next one
+(:mod:`.study`).
 
 Limits: a message is at most :data:`MAX_MESSAGE_BYTES` bytes of UTF-8 text; numbers are finite
 JSON numbers (``NaN``, ``Infinity`` are refused), integers are not floats or booleans; no keys
 other than those above.
 
-Server → client: ``welcome`` (the scenario, the control limits, the initial conditions; on
-connecting), ``started``, ``countdown``, ``go``, ``state`` (every step), ``plan`` (each plan the
-robot executes), ``ended`` (outcome, metrics, the file written) and ``error``
-(:mod:`.session` builds them; ``docs/drive.md`` lists their fields).
+Server → client: ``welcome`` (the scenario, the control limits, the initial conditions, the
+room; on connecting), ``room`` (who is in the room, the protocol's progress), ``queued`` (robot
+mode: the place in the planner's queue), ``started``, ``countdown``, ``go``, ``state`` (every
+step), ``plan`` (each plan the robot executes), ``ended`` (outcome, metrics, the file written) and
+``error`` (:mod:`.room` builds them; ``docs/drive.md`` lists their fields).
 """
 
 from __future__ import annotations
@@ -33,7 +42,7 @@ from dataclasses import dataclass
 from ..scenario import study_initial_conditions
 from .controls import Controls
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 MAX_MESSAGE_BYTES = 1024
 """Largest client message accepted, bytes of UTF-8 text (a controls message is about 100)."""
 MAX_SEQ = 2**53
@@ -75,10 +84,18 @@ class Abort:
     """``abort``: end the running trial."""
 
 
-ClientMessage = Start | ControlsMessage | Abort
+@dataclass(frozen=True)
+class Participant:
+    """``participant``: the id of the person at this page (None: unknown)."""
+
+    driver: int | None
+
+
+ClientMessage = Start | ControlsMessage | Abort | Participant
 _FIELDS = {"start": {"type", "initial_condition", "robot_car", "drivers"},
            "controls": {"type", "seq", "car", "throttle", "brake", "steer"},
-           "abort": {"type"}}
+           "abort": {"type"},
+           "participant": {"type", "driver"}}
 
 
 _MISSING = object()
@@ -147,6 +164,8 @@ def _fields(kind: str, message: dict) -> ClientMessage:
                             f"(expected only {', '.join(sorted(_FIELDS[kind]))})")
     if kind == "abort":
         return Abort()
+    if kind == "participant":
+        return Participant(_integer(message, "driver", 0, DRIVER_ID_MAX, nullable=True))
     if kind == "controls":
         return ControlsMessage(
             seq=_integer(message, "seq", 0, MAX_SEQ),

@@ -1,7 +1,8 @@
 """Where browser trials are written: one Parquet file per trial, in the dataset format.
 
 Trial ``n`` of a folder is ``drive_00000n.parquet`` (numbers continue after the highest one in
-the folder, so a folder collects the drives of many sessions); the file is written atomically
+the folder, so a folder collects the drives of many sessions, and the rooms driving at once never
+share one); the file is written atomically
 (:meth:`~trafficweaving.data.trials.TrialSet.write_parquet`), so a reader never sees half a trial.
 """
 
@@ -12,7 +13,8 @@ import re
 from pathlib import Path
 
 from ..atomic import check_output_folder
-from ..data.trials import TrialSet
+from ..data.trials import TrialSet, load_trials
+from ..errors import InputError
 
 FILE_PATTERN = re.compile(r"drive_(\d{6,})\.parquet")
 """Names of recorded trials: ``drive_`` and the trial number."""
@@ -23,12 +25,19 @@ class Recorder:
 
     def __init__(self, folder: str | os.PathLike):
         self.folder = check_output_folder(folder, "--out")
+        self.last_reserved = 0
 
     def next_number(self) -> int:
         """The number of the next trial: one more than the highest recorded in the folder (1 first)."""
         numbers = [int(m.group(1)) for p in (self.folder.iterdir() if self.folder.is_dir() else [])
                    if (m := FILE_PATTERN.fullmatch(p.name))]
         return max(numbers, default=0) + 1
+
+    def reserve(self) -> int:
+        """The number of a new trial, never one this recorder handed out before (rooms that start
+        trials at once get different numbers before either is written)."""
+        self.last_reserved = max(self.next_number(), self.last_reserved + 1)
+        return self.last_reserved
 
     def path(self, number: int) -> Path:
         """The file of trial ``number``."""
@@ -39,3 +48,20 @@ class Recorder:
         path = self.path(number)
         trials.write_parquet(path)
         return path
+
+
+def recorded_files(folder: str | os.PathLike) -> list[Path]:
+    """The recorded trials of ``folder`` in trial order; InputError when it holds none."""
+    folder = Path(folder)
+    files = sorted((p for p in folder.iterdir() if FILE_PATTERN.fullmatch(p.name)),
+                   key=lambda p: int(FILE_PATTERN.fullmatch(p.name).group(1))) if folder.is_dir() else []
+    if not files:
+        raise InputError(f"{folder}: no recorded trials (expected drive_NNNNNN.parquet files written by "
+                         f"trafficweaving drive)")
+    return files
+
+
+def load_recordings(folder: str | os.PathLike) -> list[TrialSet]:
+    """Every recorded trial of ``folder`` (:func:`recorded_files`), each checked by
+    :func:`~trafficweaving.data.trials.load_trials`."""
+    return [load_trials(path) for path in recorded_files(folder)]

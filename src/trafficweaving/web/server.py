@@ -1,5 +1,9 @@
 """``trafficweaving drive``: serve the app with uvicorn on a socket bound here (so a port in use is
-a one-line error before anything loads), print the URL and open it in the user's browser."""
+a one-line error before anything loads), print the URL and open it in the user's browser.
+
+Loopback only unless ``--host`` says otherwise; off loopback the server makes a key
+(:mod:`.lobby`): its link, printed at the start, creates rooms, every room is joined only with
+its own token, and the server says so when it starts."""
 
 from __future__ import annotations
 
@@ -18,8 +22,9 @@ import uvicorn
 from ..errors import InputError
 from ..planning.mpc import NonBlockingMPCPolicy
 from .app import build_robot, create_app
+from .lobby import Lobby, new_token
 from .recording import Recorder
-from .session import DriveConfig
+from .room import DriveConfig
 
 WS_MAX_FRAME_BYTES = 1 << 20
 """Largest WebSocket frame the server reads, bytes (1 MiB). Messages up to it that break the
@@ -72,11 +77,12 @@ def is_loopback(host: str) -> bool:
 class DriveServer:
     """A drive app ready to serve on its bound socket: :meth:`run` serves until stopped
     (``server.should_exit = True`` from another thread, or a signal), :meth:`close` frees the
-    socket and the planner thread."""
+    socket and the planner thread. ``url`` opens the page (with the key off loopback)."""
 
     server: uvicorn.Server
     sock: socket.socket
     robot: NonBlockingMPCPolicy | None
+    lobby: Lobby
     url: str
 
     def run(self) -> None:
@@ -91,7 +97,7 @@ class DriveServer:
 def build_server(config: DriveConfig, host: str, port: int, out: str) -> DriveServer:
     """Bind ``host``:``port`` (InputError when it cannot be had), load the robot (robot mode; its
     planner thread with ``config.threads`` torch threads, None: :func:`default_threads`) and make
-    the app recording into ``out``."""
+    the app recording into ``out``; off loopback with a new key (:mod:`.lobby`)."""
     config = replace(config, threads=config.threads or default_threads())
     recorder = Recorder(out)
     sock = bind(host, port)
@@ -100,10 +106,11 @@ def build_server(config: DriveConfig, host: str, port: int, out: str) -> DriveSe
     except BaseException:
         sock.close()
         raise
-    app = create_app(config, recorder, robot)
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", ws_max_size=WS_MAX_FRAME_BYTES,
+    key = None if is_loopback(host) else new_token()
+    lobby = Lobby(config, recorder, robot, key)
+    server = uvicorn.Server(uvicorn.Config(create_app(lobby), log_level="warning", ws_max_size=WS_MAX_FRAME_BYTES,
                                            timeout_graceful_shutdown=5))
-    return DriveServer(server, sock, robot, url_of(sock))
+    return DriveServer(server, sock, robot, lobby, url_of(sock) + ("" if key is None else f"?key={key}"))
 
 
 def serve(config: DriveConfig, host: str, port: int, out: str, open_browser: bool = True,
@@ -115,8 +122,14 @@ def serve(config: DriveConfig, host: str, port: int, out: str, open_browser: boo
     try:
         say(f"trafficweaving drive ({config.mode} mode): open {drive.url} — trials are recorded in {out} "
             f"(Ctrl-C to stop)")
-        if not is_loopback(host):
-            say(f"warning: serving on {host}, not loopback: anyone who can reach this machine can drive")
+        if config.mode == "human-human":
+            say("each page there opens a room for two drivers and shows its join link, for the second browser")
+        if drive.lobby.key is not None:
+            anywhere = "; put this machine's network address in it" \
+                if ipaddress.ip_address(drive.sock.getsockname()[0]).is_unspecified else ""
+            say(f"serving on {host}, not loopback: pages need the link above (its key creates rooms{anywhere}) or a "
+                f"room's join link (its token); every other request is refused. Share only join links, on a network "
+                f"you trust (plain HTTP)")
         if open_browser:
             threading.Thread(target=_open_when_up, args=(drive.server, drive.url), daemon=True).start()
         drive.run()

@@ -28,6 +28,9 @@ from ..sim.world import Agent, World
 
 END_REASONS = ("finished", "time_limit", "collision", "off_road", "aborted", "disconnected", "server_error")
 """Why a trial ended (module docstring)."""
+COMPLETED = END_REASONS[:4]
+"""The reasons of a completed trial, ended by the scenario's rules; the others are aborted trials
+(stopped by a person, a page gone away, a server error)."""
 
 
 @dataclass(frozen=True)
