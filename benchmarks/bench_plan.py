@@ -10,13 +10,16 @@ Measured in one run, same process, same model:
 * ``seconds``: our planner (median of ``--repeats``); ``speedup`` and ``achieved_gflops`` (the
   decoder's matrix-multiply FLOPs per plan over the plan's time);
 * ``bfloat16_seconds``: our planner with the decoder's matrix multiplies in bfloat16;
+* ``int8_seconds``: our planner with the fused, compiled decoder steps and int8 hidden-state
+  matrix multiplies (``precision="int8"``, :mod:`trafficweaving.model.fused_decoder`; compiled in
+  a warm-up plan first), and ``int8_speedup`` against the naive loop;
 * real-time mode (``--deadline``, default 0.3 s) on recorded situations (simulated human–human
   trials, the other car playing the robot; or, with ``--episodes``, the closest calls of
   closed-loop episodes, where choices matter most): how often its first free window equals the full-budget
   plan's, its expected-cost regret against the full-budget choice (both re-scored with 2048 fresh
   samples; also relative to the spread of expected costs over the candidates), and, as the noise
   floor, the same for a second full-budget plan with another seed;
-  the same two figures for full-budget plans in bfloat16.
+  the same two figures for full-budget plans in bfloat16 and in int8.
 
     python benchmarks/bench_plan.py [--threads N] [--situations 18] [--deadline 0.3] [--model default]
                                     [--episodes SIMULATE_OUT_DIR]
@@ -182,12 +185,18 @@ def main() -> None:
     fast = Planner(low, budget)
     fast.plan(history, first, cost)
     report["bfloat16_seconds"] = round(statistics.median(fast.plan(history, first, cost).seconds for _ in range(args.repeats)), 3)
+    quantised = Planner(HumanPredictor(model, precision="int8"), budget)
+    quantised.plan(history, first, cost)  # warm-up: compiles the fused steps (cached on disk after the first run)
+    report["int8_seconds"] = round(statistics.median(quantised.plan(history, first, cost).seconds
+                                                     for _ in range(args.repeats)), 3)
     if not args.skip_naive:
         report["naive_seconds"] = round(naive_plan(model, history, first, cost, budget), 3)
         report["speedup"] = round(report["naive_seconds"] / report["seconds"], 2)
+        report["int8_speedup"] = round(report["naive_seconds"] / report["int8_seconds"], 2)
     print(json.dumps(report), flush=True)
 
     agree, regret, agree_full, regret_full, agree_bf16, regret_bf16, late, spread = [], [], [], [], [], [], [], []
+    agree_int8, regret_int8 = [], []
     realtime = Planner(HumanPredictor(model, precision=args.realtime_precision), budget, seed=1)
     realtime.plan(history, first, cost, deadline=args.deadline)  # warm-up: measures its speed
     chosen = situations(args.situations) if args.episodes is None else closest_calls(args.episodes, args.situations)
@@ -205,6 +214,9 @@ def main() -> None:
         lower = Planner(low, budget, seed=300 + k).plan(hist, fixed, c)
         agree_bf16.append(lower.actions[1] == full.actions[1])
         regret_bf16.append(expected_cost(planner, hist, fixed, c, lower.index) - reference)
+        coarse = Planner(quantised.human_model, budget, seed=400 + k).plan(hist, fixed, c)
+        agree_int8.append(coarse.actions[1] == full.actions[1])
+        regret_int8.append(expected_cost(planner, hist, fixed, c, coarse.index) - reference)
     report["realtime"] = {
         "deadline": args.deadline, "situations": len(late), "max_seconds": round(max(late), 3),
         "within_deadline": int(sum(s <= args.deadline for s in late)),
@@ -216,6 +228,8 @@ def main() -> None:
         "full_vs_full_regret_mean": round(float(np.mean(regret_full)), 2),
         "bfloat16_agreement": round(float(np.mean(agree_bf16)), 3),
         "bfloat16_regret_mean": round(float(np.mean(regret_bf16)), 2),
+        "int8_agreement": round(float(np.mean(agree_int8)), 3),
+        "int8_regret_mean": round(float(np.mean(regret_int8)), 2),
     }
     print(json.dumps(report))
 

@@ -23,7 +23,7 @@ from .cvae import ACCEL, CVAE, STATE_DIM
 from .mixture import Mixture
 from .sampler import rollout
 
-PRECISIONS = ("auto", "float32", "bfloat16")
+PRECISIONS = ("auto", "float32", "bfloat16", "int8")
 """Choices of :func:`resolve_precision`."""
 
 
@@ -46,7 +46,9 @@ def resolve_precision(precision: str, device: torch.device | str = "cpu") -> tor
         raise InputError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     if precision == "auto":
         return torch.bfloat16 if native_bfloat16(device) else torch.float32
-    return {"float32": torch.float32, "bfloat16": torch.bfloat16}[precision]
+    if precision == "int8" and torch.device(device).type != "cpu":
+        raise InputError(f"precision int8 runs on the CPU only, the model is on {device} (expected auto, float32 or bfloat16)")
+    return {"float32": torch.float32, "bfloat16": torch.bfloat16, "int8": torch.int8}[precision]
 
 
 @dataclass
@@ -69,7 +71,9 @@ class HumanPredictor:
     :data:`PRECISIONS`; a float64 model always runs in float64): ``float32`` samples the model
     exactly as it is; ``bfloat16`` keeps the state and gate arithmetic in float32 and is about
     twice as fast on CPUs with native bfloat16, with slightly different numbers (docs/planner.md
-    measures the planner's decisions); ``auto`` is bfloat16 where native. ``chunk_rows``: decoder
+    measures the planner's decisions); ``auto`` is bfloat16 where native; ``int8`` (CPU only)
+    quantises the hidden state and runs the decoder's steps fused and compiled
+    (:mod:`~trafficweaving.model.fused_decoder`; the first plan compiles for about two minutes). ``chunk_rows``: decoder
     rows per chunk (the working set stays in cache).
 
     :attr:`device` and :attr:`dtype` are the model's; tensors returned live there.

@@ -27,6 +27,7 @@ import torch
 from ..scenario import HORIZON
 from .cvae import CVAE, STATE_DIM
 from .lstm import FORGET_BIAS
+from .fused_decoder import FusedDecoder
 from .gmm import HOLD_MODES, LOG_SIGMA_CLIP, compose_hold_sample, split_uniform
 from .mixture import Mixture
 
@@ -99,12 +100,16 @@ class BatchedRollout:
                 self.hold_sigma = m.hold.widths().exp()
             self.param_offsets = (self.modes + m_count + torch.arange(5)).unsqueeze(0)
             self.output_scale = m.output_scale.detach().clone()  # [2]: x, y
-            self.w_head = head.contiguous().to(self.matmul_dtype)
-            self.head_bias = self.head_bias.to(self.matmul_dtype)
-            self.w_step = self.w_step.to(self.matmul_dtype)
-            latent_gates = m.latent_onehots @ self.w_gate_z  # [Z, 4u]
-            latent_init = m.latent_onehots @ self.w_init_z  # [Z, 2u]
-            self.latent_gates, self.latent_init = latent_gates, latent_init
+            self.latent_gates = m.latent_onehots @ self.w_gate_z  # [Z, 4u]
+            self.latent_init = m.latent_onehots @ self.w_init_z  # [Z, 2u]
+            # int8: the fused, compiled steps of fused_decoder.py hold their own (quantised) weights
+            self.fused = (FusedDecoder(self.w_step, self.latent_gates, self.latent_init, head, self.head_bias,
+                                       self.output_scale, self.hold_sigma if c.hold else None, self.modes, m_count)
+                          if self.matmul_dtype == torch.int8 else None)
+            if self.fused is None:
+                self.w_head = head.contiguous().to(self.matmul_dtype)
+                self.head_bias = self.head_bias.to(self.matmul_dtype)
+                self.w_step = self.w_step.to(self.matmul_dtype)
 
     @torch.no_grad()
     def encode(self, history: torch.Tensor, robot_futures: torch.Tensor, present_action: torch.Tensor) -> dict:
@@ -119,14 +124,13 @@ class BatchedRollout:
         x = torch.cat([history_h.expand(c_count, -1), m.encode_robot_future(robot_futures, robot_present.expand(c_count, -1))], -1)
         robot_inputs = torch.cat([robot_present.expand(c_count, 1, -1), robot_futures[:, :-1]], dim=1)
         logits = m.p_z_logits(x)
-        return {
-            "log_p_z": torch.log_softmax(logits, dim=-1),  # [C, N_z, K_z]
-            "log_p_joint": m.joint_log_prob(logits),  # [C, Z]
-            "x_gates": x @ self.w_gate_x + self.gate_bias,  # [C, 4u]
-            "x_init": x @ self.w_init_x + self.init_bias,  # [C, 2u]
-            "robot_inputs": robot_inputs.transpose(0, 1).contiguous(),  # [15, C, 6]
-            "present_action": present_action,
-        }
+        x_gates, x_init = x @ self.w_gate_x + self.gate_bias, x @ self.w_init_x + self.init_bias  # [C, 4u], [C, 2u]
+        robot_inputs = robot_inputs.transpose(0, 1).contiguous()  # [15, C, 6]
+        decoder = ({"fused": self.fused.prepare(x_gates, x_init, robot_inputs)} if self.fused is not None
+                   else {"x_gates": x_gates, "x_init": x_init, "robot_inputs": robot_inputs})
+        return {"log_p_z": torch.log_softmax(logits, dim=-1),  # [C, N_z, K_z]
+                "log_p_joint": m.joint_log_prob(logits),  # [C, Z]
+                "present_action": present_action, **decoder}
 
     def sample_latents(self, context: dict, n: int, generator: torch.Generator | None, candidates: torch.Tensor | None = None) -> torch.Tensor:
         """Joint latent values ``[n, C']`` drawn from p(z|x) of each candidate (all, or ``candidates``)."""
@@ -152,7 +156,7 @@ class BatchedRollout:
                     normal: torch.Tensor) -> torch.Tensor:
         """Actions ``[R, 15, 2]`` (standardised) of ``R`` decoder rows: candidate ``rows_cand [R]``,
         latent value ``rows_z [R]``, uniforms ``[R, 15]`` and normals ``[R, 15, 2]``, in chunks."""
-        out = torch.empty((len(rows_cand), HORIZON, 2), device=rows_cand.device, dtype=context["x_gates"].dtype)
+        out = torch.empty((len(rows_cand), HORIZON, 2), device=rows_cand.device, dtype=context["log_p_joint"].dtype)
         for start in range(0, len(rows_cand), self.chunk_rows):
             rows = slice(start, start + self.chunk_rows)
             out[rows] = self._decode_chunk(context, rows_cand[rows], rows_z[rows], uniform[rows], normal[rows])
@@ -160,17 +164,19 @@ class BatchedRollout:
 
     def _decode_chunk(self, ctx: dict, cand: torch.Tensor, z: torch.Tensor, uniform: torch.Tensor,
                       normal: torch.Tensor) -> torch.Tensor:
-        units = self.w_head.shape[0]
+        if self.fused is not None:
+            return self.fused.decode(ctx["fused"], cand, z, ctx["present_action"], uniform, normal)
+        units = self.latent_init.shape[1] // 2
         rows = len(cand)
         constant = (ctx["x_gates"].index_select(0, cand) + self.latent_gates.index_select(0, z)).to(self.matmul_dtype)  # [R, 4u]
         init = torch.tanh(ctx["x_init"].index_select(0, cand) + self.latent_init.index_select(0, z))
+        robot_steps = ctx["robot_inputs"].index_select(1, cand)  # [N, R, 6]
         c = init[:, :units].contiguous()
         mixed = self.matmul_dtype != c.dtype  # matrix multiplies in lower precision, state and gates in full
         step_in = torch.empty((rows, units + STATE_DIM + 2), dtype=self.matmul_dtype, device=c.device)  # [h, robot, action]
         step_in[:, :units] = init[:, units:]
         step_in[:, units + STATE_DIM:] = ctx["present_action"]
         h, robot, action = step_in[:, :units], step_in[:, units:units + STATE_DIM], step_in[:, units + STATE_DIM:]
-        robot_steps = ctx["robot_inputs"].index_select(1, cand)  # [N, R, 6]
         uniform, normal = uniform.T.contiguous(), normal.transpose(0, 1).contiguous()  # [N, R], [N, R, 2]
         offsets = self.param_offsets.to(cand.device)
         i, f, o, j = (slice(k * units, (k + 1) * units) for k in range(4))
