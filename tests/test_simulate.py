@@ -343,6 +343,15 @@ def test_planner_episode_with_a_tiny_budget(tmp_path):
     assert record["spec"]["budget"] == [1, 1, 2] and summary["deadline_misses"] == record["latency"]["deadline_misses"]
 
 
+def test_the_planner_samples_at_the_precision_asked_for(tmp_path):
+    """precision reaches the planner's human model (int8: the fused, compiled steps) and is logged;
+    an unknown one is refused before any episode runs."""
+    simulate(1, "planner", "synthetic", seed=0, out=tmp_path, budget=Budget(1, 1, 2), precision="int8")
+    assert records(tmp_path, 1)[0]["spec"]["precision"] == "int8"
+    with pytest.raises(InputError, match="precision must be one of"):
+        simulate(1, "planner", "synthetic", seed=0, out=tmp_path / "other", precision="fp8")
+
+
 def test_replaying_an_episode_reproduces_it(inline_run):
     """A replayed human starts from the recording's start; replaying a rules-robot episode against
     the (deterministic) rules robot gives the recorded episode back, the robot as car 0."""

@@ -506,7 +506,7 @@ def cmd_simulate(args) -> None:
     summary = simulate(args.episodes, args.robot, args.human, seed=args.seed, workers=args.workers,
                        engine=args.engine, address=args.address, out=args.out,
                        model=_model_spec(args.model, "--model"), deadline=args.deadline, device=args.device,
-                       progress=not args.json)
+                       precision=args.precision, progress=not args.json)
     _emit(args, summary, summary_table(summary))
 
 
@@ -782,6 +782,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="local: a process pool; ray: Ray tasks (pip install 'trafficweaving[ray]')")
     p.add_argument("--address", help="with --engine ray: the Ray cluster to join (default: a new local instance)")
     p.add_argument("--device", default="cpu", help="the models' device: cpu (default), auto, cuda, cuda:N")
+    p.add_argument("--precision", choices=PRECISIONS, default="auto", help="the planner's sampling precision (default "
+                   "auto: bfloat16 where the CPU has it; int8: fused and compiled, docs/planner.md)")
     p.add_argument("--out", default="simulation", help="output folder (default ./simulation): "
                    "episodes/episode_NNNNNN.parquet and summary.json; a rerun resumes")
     p.add_argument("--json", action="store_true")

@@ -185,7 +185,7 @@ def _run_ray(spec: EpisodeSpec, indices: list[int], workers: int, address: str |
 def simulate(episodes: int, robot: str, human: str, seed: int = 0, workers: int = 1, engine: str = "local",
              address: str | None = None, out: str | Path = "simulate", model: str = "default",
              deadline: float | None = None, budget: Budget | None = None, device: str = "cpu",
-             progress: bool = False) -> dict:
+             precision: str = "auto", progress: bool = False) -> dict:
     """Run (or resume) episodes ``0..episodes-1`` of robot ``robot`` against human ``human`` and
     return the summary written to ``out/summary.json`` (module docstring; keys of
     :func:`~.metrics.aggregate`, plus ``computed`` and ``reused`` episode counts, the settings and
@@ -193,7 +193,8 @@ def simulate(episodes: int, robot: str, human: str, seed: int = 0, workers: int 
 
     Every argument is checked before an episode runs (InputError: counts ≥ 1, seed 0..2³²−1, the
     engine, Ray installed for ``engine="ray"``, ``address`` only with Ray, the output folder, the
-    ``device`` (``auto`` resolved here), and the specs and model, by building the agents once). An
+    ``device`` (``auto`` resolved here), and the specs, model and ``precision``, by building the
+    agents once). An
     episode that raises stops the batch with :class:`EpisodeFailed` (finished episodes stay logged;
     no summary is written). With Ray already initialised in this process, its instance is used
     (``address`` ignored) and left running.
@@ -209,7 +210,7 @@ def simulate(episodes: int, robot: str, human: str, seed: int = 0, workers: int 
         raise InputError(f"address {address!r} applies only to the ray engine (expected engine 'ray' or no address)")
     out = check_output_folder(out, "--out")
     device = str(choose_device(device))
-    spec = EpisodeSpec(robot, human, seed, model, None if deadline is None else float(deadline), budget, device)
+    spec = EpisodeSpec(robot, human, seed, model, None if deadline is None else float(deadline), budget, device, precision)
     agents = spec.agents()
 
     began = time.perf_counter()

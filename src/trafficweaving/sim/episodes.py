@@ -40,7 +40,8 @@ from .world import Agent, run_episodes
 class EpisodeSpec:
     """What the episodes of a run share: the robot and human specs (``sim.robots.robot_agent``,
     ``sim.humans.human_agent``), the run's ``seed`` (0..2³²−1), the planner's human ``model``, its
-    wall-clock ``deadline`` (s) or sample ``budget``, and the torch ``device``."""
+    wall-clock ``deadline`` (s) or sample ``budget``, the torch ``device`` and the planner's
+    sampling ``precision``."""
 
     robot: str
     human: str
@@ -49,11 +50,12 @@ class EpisodeSpec:
     deadline: float | None = None
     budget: Budget | None = None
     device: str = "cpu"
+    precision: str = "auto"
 
     def agents(self) -> tuple[Agent, Agent]:
         """A new ``(robot, human)`` pair of agents; :class:`~trafficweaving.errors.InputError` for an
         unknown spec or a model that does not load."""
-        return (robot_agent(self.robot, self.model, self.deadline, self.budget, self.device),
+        return (robot_agent(self.robot, self.model, self.deadline, self.budget, self.device, self.precision),
                 human_agent(self.human, self.device))
 
     def as_dict(self) -> dict:

@@ -186,13 +186,13 @@ class RuleBasedRobot:
 
 
 def robot_agent(spec: str, model: str = "default", deadline: float | None = None, budget: Budget | None = None,
-                device: torch.device | str = "cpu") -> Agent:
+                device: torch.device | str = "cpu", precision: str = "auto") -> Agent:
     """The robot agent named by ``spec`` (one of :data:`ROBOT_SPECS`):
 
     * ``planner``: :class:`~trafficweaving.planning.mpc.MPCPolicy` planning against the human
       model ``model`` (``default``, a checkpoint path or ``authors:PATH``, as
       :func:`~trafficweaving.model.checkpoint.load_model`; the unimodal ``lstm`` variant is just
-      ``model=path/to/lstm.pt``) through :class:`HumanPredictor` (``precision="auto"``), in the
+      ``model=path/to/lstm.pt``) through :class:`HumanPredictor` (with ``precision``), in the
       decisive mode (:data:`~trafficweaving.planning.planner.MODES`: settled steering, turn-back cost);
     * ``planner-paper``: the same in the paper's mode exactly;
     * ``planner-comfort``: decisive, with candidates that keep to nuPlan's comfort limits;
@@ -201,22 +201,23 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
     * ``rules``: :class:`RuleBasedRobot` (``model``, ``deadline``, ``budget`` unused).
 
     The planners run on ``device`` (``auto``, ``cpu``, ``cuda`` or ``cuda:N``) with the sample
-    counts ``budget`` (None: the paper's) or, with ``deadline`` (s), in real-time mode. An unknown
-    spec raises :class:`~trafficweaving.errors.InputError`.
+    counts ``budget`` (None: the paper's) or, with ``deadline`` (s), in real-time mode, sampling at
+    ``precision`` (:data:`~trafficweaving.model.predictor.PRECISIONS`). An unknown spec or
+    precision raises :class:`~trafficweaving.errors.InputError`.
     """
     if spec not in ROBOT_SPECS:
         raise InputError(f"robot {spec!r} is unknown (expected one of: {', '.join(ROBOT_SPECS)})")
     if spec == "rules":
         return RuleBasedRobot()
-    return MPCPolicy(robot_planner(spec, model, budget, device), deadline=deadline)
+    return MPCPolicy(robot_planner(spec, model, budget, device, precision), deadline=deadline)
 
 
 def robot_planner(spec: str, model: str = "default", budget: Budget | None = None,
-                  device: torch.device | str = "cpu") -> Planner:
+                  device: torch.device | str = "cpu", precision: str = "auto") -> Planner:
     """The :class:`Planner` of the planning robot ``spec`` (a key of :data:`PLANNER_MODES`, as
     :func:`robot_agent`), for policies that drive it their own way (the
     browser's non-blocking one)."""
     device = choose_device(str(device))
     human_model = (ConstantVelocityHuman(device) if spec == "planner-cv"
-                   else HumanPredictor(load_model(model, device), precision="auto"))
+                   else HumanPredictor(load_model(model, device), precision=precision))
     return Planner(human_model, budget, mode=MODES[PLANNER_MODES[spec]])
