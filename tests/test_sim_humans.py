@@ -6,9 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from hypothesis import given
+from hypothesis import strategies as st
 
 from trafficweaving.data.trials import load_trials
-from trafficweaving.dynamics import constant_acceleration_future, future_states
+from trafficweaving.dynamics import constant_acceleration_future, future_states, without_reversing
 from trafficweaving.errors import InputError
 from trafficweaving.model.checkpoint import load_model
 from trafficweaving.scenario import (CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y, MIN_HISTORY, SWAP_THRESHOLD_Y,
@@ -260,6 +262,28 @@ def test_a_driver_model_executes_a_safe_sample_or_the_one_unsafe_latest():
     executed = agent.sample(histories, futures)[0]
     np.testing.assert_allclose(executed[:, 0], 0.6, atol=1e-5)
     np.testing.assert_allclose(executed[:, 1], 0.0, atol=1e-5)  # already on the centre line, at rest
+
+
+@given(v0=st.floats(0.0, 40.0), a0=st.floats(-8.0, 5.0),
+       accelerations=st.lists(st.floats(-8.0, 5.0), min_size=1, max_size=15))
+def test_braking_stops_a_car_and_never_reverses_it(v0, a0, accelerations):
+    guarded = without_reversing(v0, a0, np.array(accelerations))
+    speeds = v0 + np.cumsum(0.5 * DT * (np.concatenate([[a0], guarded[:-1]]) + guarded))  # the trapezoid rule
+    assert (speeds >= -1e-9).all() and (guarded >= np.array(accelerations)).all()
+    kept = v0 + np.cumsum(0.5 * DT * (np.concatenate([[a0], accelerations[:-1]]) + np.array(accelerations)))
+    if (kept >= 0).all():  # nothing to guard: unchanged
+        np.testing.assert_array_equal(guarded, accelerations)
+
+
+def test_a_driver_model_braking_to_a_stop_does_not_roll_backwards():
+    driver = load_model("driver")
+    agent = ModelDriver(driver, anticipation=0)
+    histories, futures = _driver_situation()
+    histories[:, -1, 1, 2] = 0.5  # the human car crawls at 0.5 m/s
+    agent.model.sample_futures = _proposing(driver, (-6.0, 0.0))
+    executed = agent.sample(histories, futures)[0]
+    states = future_states(histories[:, -1, 1], executed[None])[0]
+    assert executed[0, 0] == pytest.approx(-6.0) and (states[:, 2] >= -1e-9).all() and states[-1, 2] < 0.5
 
 
 def test_a_driver_model_judges_its_proposals_by_the_other_cars_predicted_futures():

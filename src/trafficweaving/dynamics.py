@@ -45,6 +45,19 @@ def trapezoid_step(p, v, a, a_next, dt: float = DT):
     return p + 0.5 * dt * (v + v_next), v_next
 
 
+def without_reversing(v0, a0, accelerations, dt: float = DT):
+    """Longitudinal ``accelerations [..., N]`` (m/s², steps t+1..t+N) of cars at speed ``v0 [...]``
+    (m/s) with present acceleration ``a0 [...]`` (m/s²), each raised just enough that the speed
+    integrated by the trapezoid rule never drops below 0: a car on the highway stops, it does not
+    roll backwards. Accelerations that keep the speed non-negative are returned unchanged (NumPy)."""
+    out = np.array(accelerations, dtype=float)
+    v, a = np.asarray(v0, dtype=float), np.asarray(a0, dtype=float)
+    for k in range(out.shape[-1]):
+        out[..., k] = np.maximum(out[..., k], -a - 2.0 * np.maximum(v, 0.0) / dt)
+        v, a = v + 0.5 * dt * (a + out[..., k]), out[..., k]
+    return out
+
+
 def future_states(present, accelerations, dt: float = DT):
     """A human car's states ``[..., N, 6]`` at steps t+1..t+N from its present state ``present
     [..., 6]`` (broadcastable against the leading dims of ``accelerations``) and its accelerations
