@@ -1,6 +1,6 @@
-"""The decoder's 15 sampling steps as one fused function with int8 matrix multiplies: the planner's
-``precision="int8"`` (:class:`~trafficweaving.model.predictor.HumanPredictor`), the fastest way to
-sample the paper's 98,304 human futures per plan on a CPU (docs/planner.md, Speed).
+"""The decoder's sampling step as one fused, compiled function with int8 matrix multiplies: the
+planner's ``precision="int8"`` (:class:`~trafficweaving.model.predictor.HumanPredictor`), the
+fastest way to sample the paper's 98,304 human futures per plan on a CPU (docs/planner.md, Speed).
 
 Same distribution as :class:`~trafficweaving.model.sampler.BatchedRollout` (given the same random
 numbers and float weights it returns the same samples, to rounding), reorganised for a compiler:
@@ -8,8 +8,8 @@ numbers and float weights it returns the same samples, to rounding), reorganised
 * tensors are feature-major (``[features, rows]``), so every per-row operation of the sampling head
   (the hold mode's and the mixture component's inverse CDF, the chosen component's parameters) is
   an elementwise operation over contiguous rows, written out over the 4 modes and the ``M``
-  components, and ``torch.compile`` (Inductor) fuses each step's gate, cell and sampling
-  arithmetic into a few vectorised loops;
+  components, and ``torch.compile`` (Inductor) fuses a step's gate, cell and sampling arithmetic
+  into three vectorised loops;
 * the hidden state ``h`` lies in (−1, 1), so it is quantised to int8 at the fixed scale 1/127 and
   the two hidden-state matrix multiplies (gates and output head) run on int8 weights quantised per
   output row, accumulating in int32 (``torch._int_mm``: VNNI instructions on x86 CPUs); the robot
@@ -133,7 +133,7 @@ def decode_step(c: torch.Tensor, h: torch.Tensor, action: torch.Tensor, constant
 @functools.cache
 def compiled_decode_step():
     """:func:`decode_step` compiled by Inductor (``torch.compile``; on its first call per model kind
-    about a minute on two cores, then cached on disk for later processes)."""
+    about 15 s on two cores, then cached on disk for later processes)."""
     return torch.compile(decode_step, dynamic=False)
 
 
