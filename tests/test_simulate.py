@@ -335,6 +335,19 @@ def test_resume_recomputes_only_missing_episodes(inline_run, tmp_path):
         simulate(4, "rules", "synthetic", seed=8, out=tmp_path)
 
 
+def test_a_run_logged_before_the_precision_option_resumes(inline_run, tmp_path):
+    out, _ = inline_run
+    (tmp_path / "episodes").mkdir()
+    for i in range(4):
+        trials = load_trials(episode_path(out, i))
+        del trials.metadata["episode"]["spec"]["precision"]  # as logged by the release before it
+        trials.write_parquet(episode_path(tmp_path, i))
+    assert "precision" not in load_trials(episode_path(tmp_path, 0)).metadata["episode"]["spec"]
+    assert simulate(4, "rules", "synthetic", seed=7, out=tmp_path)["reused"] == 4
+    with pytest.raises(InputError, match="an episode of another run"):
+        simulate(4, "rules", "synthetic", seed=7, out=tmp_path, precision="int8")
+
+
 def test_planner_episode_with_a_tiny_budget(tmp_path):
     """The paper's planner (CVAE human model) in the loop: plans are timed and counted."""
     summary = simulate(1, "planner", "synthetic", seed=0, out=tmp_path, budget=Budget(1, 1, 2))

@@ -69,14 +69,20 @@ def episode_path(out: Path, index: int) -> Path:
 
 def _reusable(path: Path, spec: EpisodeSpec, index: int) -> dict | None:
     """The JSON record of episode ``index`` logged at ``path``, or None when there is no readable
-    log (to compute); InputError when it was made with another spec."""
+    log (to compute); InputError when it was made with another spec (a field the log predates
+    counts as its default: a run of an earlier release resumes)."""
     try:
         record = load_trials(path).metadata.get("episode")
     except InputError:
         return None
     if not isinstance(record, dict) or record.get("index") != index:
         return None
-    if record.get("spec") != spec.as_dict():
+    stored = record.get("spec")
+    try:
+        same = isinstance(stored, dict) and EpisodeSpec.from_dict(stored) == spec
+    except TypeError:  # fields this release does not know
+        same = False
+    if not same:
         raise InputError(f"{path}: an episode of another run ({json.dumps(record.get('spec'))}; expected "
                          f"{json.dumps(spec.as_dict())}: use another --out folder)")
     return record

@@ -303,7 +303,7 @@ class Room:
             return
         self.broadcast({"type": "room", "room": self.number, "session": self.session, "join": self.join_path,
                         "seats": [member is not None for member in self.seats], "participants": self.participants,
-                        "study": None if self.study is None else self.study.progress()})
+                        "study": self.study.progress()})
 
     # ------------------------------------------------------------------ messages from a page
     async def receive(self, member: Member, text: str | bytes | None) -> None:
