@@ -73,8 +73,8 @@ class HumanPredictor:
     twice as fast on CPUs with native bfloat16, with slightly different numbers (docs/planner.md
     measures the planner's decisions); ``auto`` is bfloat16 where native; ``int8`` (CPU only)
     quantises the hidden state and runs the decoder's steps fused and compiled
-    (:mod:`~trafficweaving.model.fused_decoder`; the first plan compiles for about two minutes). ``chunk_rows``: decoder
-    rows per chunk (the working set stays in cache).
+    (:mod:`~trafficweaving.model.fused_decoder`; the first plan compiles for about 15 s).
+    ``chunk_rows``: decoder rows per chunk (the working set stays in cache).
 
     :attr:`device` and :attr:`dtype` are the model's; tensors returned live there.
     """

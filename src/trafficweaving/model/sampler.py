@@ -18,6 +18,9 @@ the same samples, to rounding), reorganised for throughput:
   hold-aware output (``cvae-hold``) the same uniform first picks the hold mode
   (:func:`~trafficweaving.model.gmm.split_uniform`), exactly as the model's own sampling does;
 * rows run in cache-sized chunks.
+
+With int8 matrix multiplies (``matmul_dtype=torch.int8``) the steps run in
+:mod:`~trafficweaving.model.fused_decoder` instead: fused, compiled and feature-major.
 """
 
 from __future__ import annotations
@@ -26,8 +29,8 @@ import torch
 
 from ..scenario import HORIZON
 from .cvae import CVAE, STATE_DIM
-from .lstm import FORGET_BIAS
 from .fused_decoder import FusedDecoder
+from .lstm import FORGET_BIAS
 from .gmm import HOLD_MODES, LOG_SIGMA_CLIP, compose_hold_sample, split_uniform
 from .mixture import Mixture
 
@@ -61,7 +64,8 @@ class BatchedRollout:
     Use :meth:`encode` once per history and candidate set, then :meth:`sample_latents` and
     :meth:`sample` (possibly several times, e.g. for the two planning stages on subsets of
     candidates). ``matmul_dtype``: the dtype of the decoder's matrix multiplies (default: the
-    model's; bfloat16 keeps the state and gate arithmetic in the model's dtype).
+    model's; bfloat16 keeps the state and gate arithmetic in the model's dtype; int8 runs the
+    steps in :class:`~trafficweaving.model.fused_decoder.FusedDecoder`).
     """
 
     def __init__(self, model: CVAE, chunk_rows: int = 2048, matmul_dtype: torch.dtype | None = None):

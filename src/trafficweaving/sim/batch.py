@@ -200,9 +200,8 @@ def simulate(episodes: int, robot: str, human: str, seed: int = 0, workers: int 
     Every argument is checked before an episode runs (InputError: counts ≥ 1, seed 0..2³²−1, the
     engine, Ray installed for ``engine="ray"``, ``address`` only with Ray, the output folder, the
     ``device`` (``auto`` resolved here), and the specs, model and ``precision``, by building the
-    agents once). An
-    episode that raises stops the batch with :class:`EpisodeFailed` (finished episodes stay logged;
-    no summary is written). With Ray already initialised in this process, its instance is used
+    agents once). An episode that raises stops the batch with :class:`EpisodeFailed` (finished
+    episodes stay logged; no summary is written). With Ray already initialised in this process, its instance is used
     (``address`` ignored) and left running.
     """
     episodes = validate.integer("episodes", episodes, 1)
