@@ -35,12 +35,14 @@ import os
 import tempfile
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from trafficweaving.data.trials import load_trials
 from trafficweaving.scenario import DT, LANE_CENTRE_Y, LANE_DIVIDER_Y, REPLAN_PERIOD_S
+from trafficweaving.web.recording import recorded_files
 from trafficweaving.web.room import CONTROL_INTERVAL_S, DriveConfig
 from trafficweaving.web.server import build_server, default_threads
 
@@ -201,16 +203,16 @@ def drive_rooms(url: str, rooms: int, seconds: float, seed: int) -> None:
 
 def summarise_rooms(files: list[Path]) -> dict:
     """The step periods of human–human trials (all rooms together)."""
-    periods, steps, reasons = [], 0, {}
+    periods, steps, reasons = [], 0, Counter()
     for path in files:
         record = load_trials(path).metadata["drive"]
         periods += record["step_periods_s"]
         steps += record["step_period"]["steps"]
-        reasons[record["reason"]] = reasons.get(record["reason"], 0) + 1
+        reasons[record["reason"]] += 1
     periods = np.array(periods)
     return {
         "trials": len(files),
-        "reasons": reasons,
+        "reasons": dict(reasons),
         "steps": steps,
         "driven_s": round(steps * DT, 1),
         "step_period_s": {"p50": float(np.median(periods)), "mean": float(periods.mean()),
@@ -240,7 +242,7 @@ def bench_rooms(args) -> dict:
         if pages.exitcode != 0:
             raise SystemExit(f"the pages' process failed (exit status {pages.exitcode})")
         return {"rooms": args.rooms, "cpus": os.cpu_count(), "wall_s": round(time.perf_counter() - began, 1),
-                **summarise_rooms(sorted(out.glob("drive_*.parquet")))}
+                **summarise_rooms(recorded_files(out))}
 
 
 def summarise(files: list[Path]) -> dict:
@@ -314,7 +316,7 @@ def main() -> None:
             server.close()
         result = {"driver": args.driver, "threads": args.threads, "cpus": os.cpu_count(),
                   "deadline_s": config.deadline, "wall_s": round(time.perf_counter() - began, 1),
-                  **summarise(sorted(out.glob("drive_*.parquet")))}
+                  **summarise(recorded_files(out))}
     if args.json:
         print(json.dumps(result))
         return

@@ -9,7 +9,7 @@ numbers and float weights it returns the same samples, to rounding), reorganised
   (the hold mode's and the mixture component's inverse CDF, the chosen component's parameters) is
   an elementwise operation over contiguous rows, written out over the 4 modes and the ``M``
   components, and ``torch.compile`` (Inductor) fuses a step's gate, cell and sampling arithmetic
-  into three vectorised loops;
+  into a few vectorised loops;
 * the hidden state ``h`` lies in (−1, 1), so it is quantised to int8 at the fixed scale 1/127 and
   the two hidden-state matrix multiplies (gates and output head) run on int8 weights quantised per
   output row, accumulating in int32 (``torch._int_mm``: VNNI instructions on x86 CPUs); the robot
