@@ -30,13 +30,16 @@ def test_generate_then_stats_json(capsys, tmp_path):
     assert set(stats["table1"]["-2"]) == {"1", "2", "3"} and set(stats["table1"]["0"]) == {"all"}
     assert 0 <= stats["table1"]["0"]["all"] <= 1
     assert {"speed", "long_accel", "lat_accel", "lane_change_x"} <= set(stats["behaviour"])
+    test = stats["table1_vs_paper"]
+    assert test["dof"] == sum(1 for row in stats["table1"].values() for v in row.values() if v is not None)
+    assert 0.0 <= test["p_value"] <= 1.0 and test["chi2"] >= 0.0
 
 
 def test_human_readable_stats_show_table1(capsys, tmp_path):
     data = tmp_path / "d.parquet"
     run(capsys, "generate", "--trials", 40, "--out", data, "--json")
     code, out, _ = run(capsys, "stats", data)
-    assert code == 0 and "Table I" in out and "paper 38.2%" in out
+    assert code == 0 and "Table I" in out and "paper 38.2%" in out and "χ²(" in out
 
 
 def test_import_hitl_gives_30_trials_and_compares_behaviour(capsys, tmp_path, hitl_files):
@@ -243,7 +246,7 @@ def test_mix_writes_a_mixture_with_a_companion_conditioned_like_the_model(capsys
     import torch
 
     from trafficweaving.model.checkpoint import load_checkpoint
-    from trafficweaving.model.mixture import Mixture
+    from trafficweaving.model.mixture import Mixture, facing
 
     data, companion, model, folds = tmp_path / "d.parquet", tmp_path / "c.pt", tmp_path / "m.pt", tmp_path / "folds"
     run(capsys, "generate", "--trials", 9, "--seed", 3, "--out", data, "--json")
@@ -254,7 +257,7 @@ def test_mix_writes_a_mixture_with_a_companion_conditioned_like_the_model(capsys
     code, out, _ = run(capsys, "mix", "--model", model, "--companion", companion, "--weight", 0.3, "--out", tmp_path / "x.pt",
                        "--folds", folds, "--out-folds", tmp_path / "xfolds", "--json")
     assert code == 0 and json.loads(out) == {"out": str(tmp_path / "x.pt"), "companion": str(companion), "weight": 0.3,
-                                              "folds": 3}
+                                              "person_weight": None, "folds": 3}
     mixed, payload = load_checkpoint(tmp_path / "x.pt")
     trained, _ = load_checkpoint(model)
     original, _ = load_checkpoint(companion)
@@ -262,9 +265,19 @@ def test_mix_writes_a_mixture_with_a_companion_conditioned_like_the_model(capsys
     assert [c.config.robot_future for c in mixed.components] == ["guess", "guess"] and original.config.robot_future == "recorded"
     for component, source in zip(mixed.components, (trained, original)):  # the weights kept
         assert all(torch.equal(v, source.state_dict()[k]) for k, v in component.state_dict().items())
-    assert payload["mixture_recipe"] == {"companion": str(companion), "weight": 0.3}
+    assert payload["mixture_recipe"] == {"companion": str(companion), "weight": 0.3, "person_weight": None}
+    assert mixed.person_weights is None and facing(mixed, "person") is mixed
     fold, fold_payload = load_checkpoint(tmp_path / "xfolds" / "fold_2.pt")
     assert isinstance(fold, Mixture) and len(fold_payload["held_out_trials"]) == 3
+    # facing a person, the companion alone: self-play drives with it, realism where both cars are human
+    code, out, _ = run(capsys, "mix", "--model", model, "--companion", companion, "--weight", 0.3, "--person-weight", 0,
+                       "--out", tmp_path / "p.pt")
+    assert code == 0 and "facing a person 0 and 1" in out
+    person, _ = load_checkpoint(tmp_path / "p.pt")
+    assert person.weights == pytest.approx([0.3, 0.7]) and person.person_weights == pytest.approx([0.0, 1.0])
+    alone = facing(person, "person")
+    assert all(torch.equal(v, original.state_dict()[k]) for k, v in alone.state_dict().items())
+    assert facing(person, "robot") is person
     # a mixture is not mixed again; the fold models need a folder to go to; the weight is a share
     code, _, err = run(capsys, "mix", "--model", tmp_path / "x.pt", "--companion", companion, "--weight", 0.5,
                        "--out", tmp_path / "y.pt")
@@ -277,6 +290,9 @@ def test_mix_writes_a_mixture_with_a_companion_conditioned_like_the_model(capsys
     assert code == 2 and "is a mixture (expected one model)" in err and err.count("\n") == 1
     code, _, err = run(capsys, "mix", "--model", model, "--companion", companion, "--weight", 1, "--out", tmp_path / "y.pt")
     assert code == 2 and "(0, 1)" in err
+    code, _, err = run(capsys, "mix", "--model", model, "--companion", companion, "--weight", 0.5, "--person-weight", 1.5,
+                       "--out", tmp_path / "y.pt")
+    assert code == 2 and "[0, 1]" in err and not (tmp_path / "y.pt").exists()
 
 
 def test_nested_recipe_search_chooses_candidate_and_calibration_on_inner_folds(capsys, tmp_path):

@@ -14,7 +14,7 @@ from trafficweaving.model.checkpoint import load_checkpoint, read_checkpoint, sa
 from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.model.evaluate import evaluate
 from trafficweaving.model.exemplars import build_exemplars
-from trafficweaving.model.mixture import Mixture
+from trafficweaving.model.mixture import Mixture, facing
 from trafficweaving.model.predictor import HumanPredictor
 from trafficweaving.model.sampler import BatchedRollout, MixtureRollout
 from trafficweaving.model.train import initial_model
@@ -103,6 +103,8 @@ def test_a_mixture_checkpoint_round_trips_and_a_malformed_one_is_refused(compone
     np.testing.assert_array_equal(evaluate(loaded, exemplars).nll_exact, evaluate(mixture, exemplars).nll_exact)
     for change, pattern in ((lambda m: m | {"weights": [0.9]}, "not a mixture"),
                             (lambda m: m | {"weights": [0.9, -0.1]}, "not a mixture"),
+                            (lambda m: m | {"person_weights": [0.0, 0.0]}, "person_weights is not a list of weights"),
+                            (lambda m: m | {"person_weights": [1.0]}, "person_weights is not a list of weights"),
                             (lambda m: m | {"components": [{**m["components"][0], "state_dict": {}}]},
                              r"mixture component 2\): checkpoint lacks tensor")):
         edited = read_checkpoint(path)
@@ -122,3 +124,31 @@ def test_fine_tuning_a_mixture_starts_from_its_first_component(components, tmp_p
     assert model.latent_temperature.item() == 1.0 and model.output_scale.tolist() == [1.0, 1.0]  # calibration reset
     assert all(torch.equal(v, first.state_dict()[k]) for k, v in model.state_dict().items()
                if k not in ("latent_temperature", "output_scale"))
+
+
+def test_a_driver_facing_a_person_uses_the_person_weights(components, tmp_path):
+    a, b = components
+    driver = Mixture([a, b], [0.5, 0.5], person_weights=[1.0, 3.0])
+    assert facing(driver, "robot") is driver
+    person = facing(driver, "person")
+    assert isinstance(person, Mixture) and person.weights == pytest.approx([0.25, 0.75]) and person.person_weights is None
+    assert facing(Mixture([a, b], [0.5, 0.5], person_weights=[0.0, 2.0]), "person") is b  # one component alone
+    assert facing(a, "person") is a and facing(Mixture([a, b], [0.5, 0.5]), "person").weights == pytest.approx([0.5, 0.5])
+    with pytest.raises(ValueError, match="other car 'cyclist' is unknown"):
+        facing(driver, "cyclist")
+    with pytest.raises(ValueError, match="facing a person must be one per component"):
+        Mixture([a, b], [0.5, 0.5], person_weights=[0.0, 0.0])
+    path = tmp_path / "driver.pt"
+    save_checkpoint(path, Mixture([copy.deepcopy(a).float(), copy.deepcopy(b).float()], [0.5, 0.5], [1.0, 3.0]))
+    loaded, _ = load_checkpoint(path)
+    assert loaded.person_weights == pytest.approx([0.25, 0.75])
+
+
+def test_a_model_driver_drives_with_the_model_facing_its_other_car(components):
+    from trafficweaving.sim.humans import ModelDriver
+
+    a, b = components
+    driver = Mixture([a, b], [0.5, 0.5], person_weights=[0.0, 1.0])
+    assert ModelDriver(driver).model is driver and ModelDriver(driver, other="person").model is b
+    with pytest.raises(InputError, match="other car 'nobody' is unknown"):
+        ModelDriver(driver, other="nobody")

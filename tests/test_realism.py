@@ -23,7 +23,7 @@ def trials():
 
 
 def fixed(spec: str):
-    return lambda ids: [(ids, human_agent(spec))]
+    return lambda ids, other: [(ids, human_agent(spec, other=other))]
 
 
 def test_histogram_likelihood_is_the_smoothed_bin_probability_of_the_real_value():
@@ -46,7 +46,7 @@ def test_the_recording_replayed_scores_as_high_as_the_histograms_allow(trials):
     rollouts = 4
     steps = np.minimum(np.arange(streams.states.shape[2]), streams.lengths[:, None] - 1)
     real_human = streams.states[np.arange(len(streams))[:, None], 1, steps, 4:6]
-    agent = lambda ids: [(ids, ReplayedCar(np.repeat(real_human, rollouts, axis=0)))]  # noqa: E731
+    agent = lambda ids, other: [(ids, ReplayedCar(np.repeat(real_human, rollouts, axis=0)))]  # noqa: E731
     result = realism(trials, agent, rollouts=rollouts, seed=0)
     summary = result.summary()
     best = rollouts / (rollouts + PSEUDOCOUNT * 21)  # every rollout in the real value's bin (20 bins + 1)
@@ -100,7 +100,8 @@ def test_realism_command(tmp_path, capsys):
     assert main(["realism", "--human", "rules", "--data", str(data), "--rollouts", "2", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     for key in ("realism", "groups", "features", "trials", "rollouts", "swap_rate", "off_road_rate", "collision_rate",
-                "real_swap_rate", "real_off_road_rate", "real_collision_rate"):
+                "real_swap_rate", "real_off_road_rate", "real_collision_rate", "at_fault_collision_rate",
+                "real_at_fault_collision_rate"):
         assert key in out
     assert out["trials"] == 3 and out["rollouts"] == 2 and 0.0 <= out["realism"] <= 1.0 and set(out["features"]) == set(FEATURES)
     assert main(["realism", "--data", str(data)]) == 2

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from trafficweaving.scenario import (
-    BASE_SPEED, COLLISION_DX, CUTOFF_X, LANE_CENTRE_Y, START_X, VALIDITY_REASONS,
-    check_validity, lane_centre_y, lane_of, study_initial_conditions,
+    BASE_SPEED, COLLISION_DX, CUTOFF_X, DT, LANE_CENTRE_Y, START_X, VALIDITY_REASONS,
+    at_fault_collision, check_validity, colliding, lane_centre_y, lane_of, study_initial_conditions,
 )
 
 
@@ -84,3 +84,31 @@ def test_steps_past_the_length_are_ignored():
 def test_lane_of():
     assert lane_of(np.array([-1.83, -3.9, -4.0, -6.09])).tolist() == ["left", "left", "right", "right"]
     assert lane_centre_y(np.array([[-1.0, -3.9], [-4.0, -7.5]])).tolist() == [[-1.83, -1.83], [-6.09, -6.09]]
+
+
+def drive(x0: float, speed: float, y0: float, lateral_speed: float = 0.0, steps: int = 40) -> np.ndarray:
+    """One car at constant velocity, states ``[1, steps, 6]``."""
+    t = DT * np.arange(steps)
+    states = np.zeros((1, steps, 6))
+    states[0, :, 0], states[0, :, 1] = x0 + speed * t, y0 + lateral_speed * t
+    states[0, :, 2], states[0, :, 3] = speed, lateral_speed
+    return states
+
+
+def test_at_fault_collision_blames_the_car_behind_or_the_one_moving_sideways_into_the_other():
+    left, right = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
+    behind, ahead = drive(START_X, 30.0, left), drive(START_X + 10, 25.0, left)  # same lane, closing at 5 m/s
+    assert colliding(behind, ahead).any()
+    assert at_fault_collision(behind, ahead).tolist() == [True] and at_fault_collision(ahead, behind).tolist() == [False]
+    # side by side, the right-lane car moves left into the other, which keeps its lane
+    mover, keeper = drive(START_X, 28.0, right, lateral_speed=1.5), drive(START_X + 1, 28.0, left)
+    assert colliding(mover, keeper).any()
+    assert at_fault_collision(mover, keeper).tolist() == [True] and at_fault_collision(keeper, mover).tolist() == [False]
+    # both move towards each other: the faster mover is at fault
+    slow_mover = drive(START_X + 1, 28.0, left, lateral_speed=-0.5)
+    assert at_fault_collision(mover, slow_mover).tolist() == [True]
+    assert at_fault_collision(slow_mover, mover).tolist() == [False]
+    # no collision, or one only at steps that are not counted: nobody is at fault
+    apart = drive(START_X + 30, 28.0, left)
+    assert not at_fault_collision(behind, apart).any()
+    assert not at_fault_collision(behind, ahead, steps=np.zeros((1, 40), dtype=bool)).any()

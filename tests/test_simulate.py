@@ -67,8 +67,11 @@ def test_who_passed_first_and_robot_index():
 def test_collision():
     """The robot runs into the human from behind in the same lane: a collision, also a near one."""
     m = metrics(car(START_X - 30, 34, LEFT, RIGHT, change=(60, 75)), car(START_X, 28, LEFT))
-    assert m["outcome"] == "collision" and m["collision"] and m["near_collision"]
+    assert m["outcome"] == "collision" and m["collision"] and m["near_collision"] and m["robot_at_fault"]
     assert not m["success"] and m["min_gap_m"] < COLLISION_DX
+    # the same, the human running into the robot: a collision the robot is not at fault for
+    hit = metrics(car(START_X, 28, LEFT), car(START_X - 30, 34, LEFT, RIGHT, change=(60, 75)))
+    assert hit["collision"] and not hit["robot_at_fault"]
 
 
 def test_near_collision_without_collision():
@@ -209,7 +212,7 @@ def test_aggregate_breakdown():
     records = [{"metrics": m, "initial_condition": ic, "latencies_s": lat}
                for m, ic, lat in zip((good, good, crash), ics, ([0.1, 0.2], [0.4], []))]
     s = aggregate(records)
-    assert s["episodes"] == 3 and s["collisions"] == 1 and s["near_collisions"] == 1
+    assert s["episodes"] == 3 and s["collisions"] == 1 and s["near_collisions"] == 1 and s["robot_at_fault_collisions"] == 1
     assert s["success_rate"]["count"] == 2 and s["success_rate"]["ci95"] == wilson_interval(2, 3)
     assert s["outcomes"]["valid"] == 2 and s["outcomes"]["collision"] == 1
     assert s["planner_latency_s"]["plans"] == 3 and s["planner_latency_s"]["median"] == pytest.approx(0.2)

@@ -11,7 +11,7 @@ import pytest
 from trafficweaving.data import trials as trials_module
 from trafficweaving.data.behaviour import behaviour_samples, compare_behaviour, summarise
 from trafficweaving.sim.generate import generate_trials
-from trafficweaving.data.stats import table1, table1_max_deviation
+from trafficweaving.data.stats import TABLE1_PAPER, TABLE1_PAPER_TRIALS, table1, table1_max_deviation, table1_test
 from trafficweaving.data.trials import (
     METADATA_KEY,
     PLAUSIBLE_RANGES,
@@ -397,3 +397,36 @@ def test_summaries_never_hold_nan_or_infinity():
     _strict_json(row)
     assert row["wasserstein"] is None and row["wasserstein_over_std"] is None
     assert math.isclose(compare_behaviour({"speed": np.array([3.0])}, {"speed": np.array([1.0, 2.0])})["speed"]["wasserstein_over_std"], 1.5 / 0.5)
+
+
+def test_table1_test_is_calibrated_on_tables_drawn_at_the_papers_rates():
+    """Tables played at the study's true rates (each cell's rate drawn from what its published
+    percentage and size leave possible, a Beta posterior) are judged consistent about 95 % of the
+    time, and fall within 5 pp of the paper in every cell only about one time in eight."""
+    rng = np.random.default_rng(0)
+    cells = [(dv, k) for dv, row in TABLE1_PAPER.items() for k in row]
+    sizes = {cell: round(TABLE1_PAPER_TRIALS[cell[0]][cell[1]]) for cell in cells}
+    rejected = within_5pp = 0
+    runs = 2000
+    for _ in range(runs):
+        table, counts = {}, {}
+        for dv, k in cells:
+            n, q = sizes[dv, k], TABLE1_PAPER[dv][k]
+            table.setdefault(dv, {})[k] = rng.binomial(n, rng.beta(q * n + 0.5, (1 - q) * n + 0.5)) / n
+            counts.setdefault(dv, {})[k] = n
+        rejected += table1_test(table, counts)["p_value"] < 0.05
+        within_5pp += table1_max_deviation(table) <= 0.05 + 1e-12
+    assert 0.03 < rejected / runs < 0.08
+    assert 0.04 < within_5pp / runs < 0.25  # the paper's own sampling error makes 5 pp a rare outcome
+
+
+def test_table1_test_scores_differences_against_both_samples_errors():
+    same = table1_test(TABLE1_PAPER, {dv: {k: 123 for k in row} for dv, row in TABLE1_PAPER.items()})
+    assert same["chi2"] == pytest.approx(0.0) and same["p_value"] == pytest.approx(1.0) and same["dof"] == 7
+    off = {dv: dict(row) for dv, row in TABLE1_PAPER.items()}
+    off["2"]["2"] = 0.64  # 12 pp low in one cell
+    small, large = (table1_test(off, {"2": {"2": n}}) for n in (120, 12000))
+    assert small["dof"] == large["dof"] == 1 and small["cells"]["2"]["2"]["difference"] == pytest.approx(0.64 - 0.762)
+    assert large["cells"]["2"]["2"]["z"] < small["cells"]["2"]["2"]["z"] < 0  # more trials: only the paper's error left
+    assert large["p_value"] < small["p_value"] < 0.05
+    assert table1_test({"2": {"1": None}}, {"2": {"1": 0}}) is None

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from .atomic import check_output_file, check_output_folder
 from .errors import InputError
-from .scenario import HORIZON, MIN_HISTORY, MIN_TRIAL_STEPS, REPLAN_PERIOD_S
+from .scenario import HORIZON, MIN_HISTORY, MIN_TRIAL_STEPS, REPLAN_PERIOD_S, STUDY_TRIALS
 
 SEED_MAX = 2**32 - 1
 """Largest ``--seed`` (NumPy and PyTorch accept every seed in 0..2³²-1 on every platform)."""
@@ -158,7 +158,7 @@ def cmd_import(args) -> None:
 
 def cmd_stats(args) -> None:
     from .data.behaviour import behaviour_samples, compare_behaviour, format_comparison, summarise
-    from .data.stats import format_table1, table1
+    from .data.stats import format_table1, format_table1_test, table1, table1_test
     from .data.trials import load_trials
 
     if Path(args.data).is_dir():
@@ -173,10 +173,12 @@ def cmd_stats(args) -> None:
                   "max": int(trials.lengths.max())},
         "table1": t1["table1"],
         "table1_counts": t1["counts"],
+        "table1_vs_paper": table1_test(t1["table1"], t1["counts"]),
         "behaviour": {name: summarise(values) for name, values in humans.items()},
     }
     text = [f"{args.data}: {len(trials)} trials, {trials.lengths.min()}–{trials.lengths.max()} steps "
-            f"(mean {trials.lengths.mean():.1f}) of {trials.dt} s", format_table1(t1["table1"], t1["counts"])]
+            f"(mean {trials.lengths.mean():.1f}) of {trials.dt} s", format_table1(t1["table1"], t1["counts"]),
+            format_table1_test(payload["table1_vs_paper"])]
     if reference is not None:
         comparison = compare_behaviour(humans, behaviour_samples(reference, role="human"))
         payload["behaviour_vs_reference"] = comparison
@@ -187,7 +189,7 @@ def cmd_stats(args) -> None:
 def _stats_of_drives(args) -> None:
     """``stats DIR``: a folder of browser recordings (``trafficweaving drive``), the study's
     progress: trials per pair (room session), completed and aborted, and Table I so far."""
-    from .data.stats import format_table1
+    from .data.stats import format_table1, format_table1_test, table1_test
     from .web.recording import load_recordings
     from .web.study import folder_progress, format_progress
 
@@ -195,10 +197,11 @@ def _stats_of_drives(args) -> None:
         raise InputError("--reference: compares a dataset file's drivers (expected stats FILE.parquet --reference "
                          "REF, not a folder)")
     progress = folder_progress(load_recordings(args.data))
+    progress["table1_vs_paper"] = table1_test(progress["table1"], progress["table1_counts"])
     text = [f"{args.data}: trials recorded {progress['files']}, completed {progress['completed']}, aborted "
             f"{progress['aborted']} (stopped, a page gone, a server error)", format_progress(progress),
             f"Table I so far (completed human-human trials: {progress['human_human_completed']}):",
-            format_table1(progress["table1"], progress["table1_counts"])]
+            format_table1(progress["table1"], progress["table1_counts"]), format_table1_test(progress["table1_vs_paper"])]
     _emit(args, {"folder": str(args.data), **progress}, "\n".join(text))
 
 
@@ -319,11 +322,12 @@ def cmd_mix(args) -> None:
         raise InputError(f"--companion {args.companion}: is a mixture (expected one model)")
     companion = conditioned_on(companion, model.config.robot_future)
     folds = out_of_fold_models(args.folds) if args.folds is not None else []
-    recipe = {"companion": args.companion, "weight": args.weight}
+    recipe = {"companion": args.companion, "weight": args.weight, "person_weight": args.person_weight}
+    person = None if args.person_weight is None else [args.person_weight, 1.0 - args.person_weight]
 
     def mixed(m):
         try:
-            return Mixture([m, companion], [args.weight, 1.0 - args.weight])
+            return Mixture([m, companion], [args.weight, 1.0 - args.weight], person)
         except ValueError as exc:
             raise InputError(f"--companion {args.companion}: {exc}") from None
 
@@ -332,7 +336,8 @@ def cmd_mix(args) -> None:
         save_checkpoint(out_folds / f"fold_{k + 1}.pt", mixed(fold_model), held_out_trials=held, mixture_recipe=recipe)
     written = f" and {len(folds)} fold models in {out_folds}" if folds else ""
     _emit(args, {"out": str(out), **recipe, "folds": len(folds)},
-          f"mixed {args.model} ({args.weight:g}) with {args.companion} ({1 - args.weight:g}) -> {out}{written}")
+          f"mixed {args.model} ({args.weight:g}) with {args.companion} ({1 - args.weight:g}"
+          f"{'' if person is None else f'; facing a person {person[0]:g} and {person[1]:g}'}) -> {out}{written}")
 
 
 def cmd_calibrate(args) -> None:
@@ -532,10 +537,9 @@ def cmd_realism(args) -> None:
         if len(missing):
             raise InputError(f"--folds {args.folds}: trial {missing[0]} of {args.data} is held out by no fold (expected "
                              f"the folds of `trafficweaving crossval --out` on the same data)")
-        agents = lambda ids: [(np.asarray(h), ModelDriver(m.to(device))) for m, h in folds]  # noqa: E731
+        agents = lambda ids, other: [(np.asarray(h), ModelDriver(m.to(device), other=other)) for m, h in folds]  # noqa: E731
     else:
-        agent = human_agent(args.human, device)
-        agents = lambda ids: [(ids, agent)]  # noqa: E731
+        agents = lambda ids, other: [(ids, human_agent(args.human, device, other=other))]  # noqa: E731
     try:
         result = realism(trials, agents, rollouts=args.rollouts, seed=args.seed, progress=not args.json)
     except ValueError as exc:
@@ -544,7 +548,7 @@ def cmd_realism(args) -> None:
                **result.summary()}
     groups = ", ".join(f"{g} {v:.3f}" for g, v in summary["groups"].items())
     rates = "; ".join(f"{k.replace('_', ' ')} {100 * summary[k + '_rate']:.1f} % (real {100 * summary['real_' + k + '_rate']:.1f} %)"
-                      for k in ("swap", "off_road", "collision"))
+                      for k in ("swap", "off_road", "collision", "at_fault_collision"))
     _emit(args, summary, f"{summary['human']}: realism {summary['realism']:.3f} ({groups}) over {summary['streams']} "
                          f"recorded humans × {summary['rollouts']} rollouts\n{rates}")
 
@@ -631,7 +635,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("generate", help="generate synthetic human–human trials")
-    p.add_argument("--trials", type=POSITIVE, default=1105, help="number of valid trials (default 1105, as the paper)")
+    p.add_argument("--trials", type=POSITIVE, default=STUDY_TRIALS,
+                   help=f"number of valid trials (default {STUDY_TRIALS}, as the paper)")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--pairs", type=POSITIVE, default=19, help="pairs of simulated drivers (default 19, as the study)")
     p.add_argument("--drivers", default="synthetic", help="who drives both cars: synthetic (the simulated drivers, "
@@ -713,6 +718,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, help="the first component: a checkpoint or a shipped model's name")
     p.add_argument("--companion", required=True, help="the second component (e.g. authors:PATH), conditioned like --model")
     p.add_argument("--weight", required=True, type=_float_in(0, 1), help="--model's weight, strictly between 0 and 1")
+    p.add_argument("--person-weight", type=_float_in(0, 1, include_low=True, include_high=True),
+                   help="--model's weight when the mixture drives a car facing a person (self-play; default --weight)")
     p.add_argument("--out", required=True, help="the mixture's checkpoint")
     p.add_argument("--folds", help="also mix the fold models of `crossval --out` in this folder ...")
     p.add_argument("--out-folds", help="... and write them here (for out-of-fold reports: `realism --folds`)")
@@ -830,7 +837,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="the main job, end to end, on the shipped defaults")
     p.add_argument("--out", default="out", help="output folder (default: out)")
-    p.add_argument("--trials", type=POSITIVE, default=1105)
+    p.add_argument("--trials", type=POSITIVE, default=STUDY_TRIALS)
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--hitl", help="folder of the authors' .jld recordings (default: ../shared/reference/hitl if present)")
     p.set_defaults(func=cmd_demo, json=False)

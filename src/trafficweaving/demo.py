@@ -21,6 +21,7 @@ from typing import Callable
 
 from .data.trials import TrialSet
 from .errors import InputError
+from .scenario import STUDY_TRIALS
 
 DEFAULT_HITL_DIRS = ("../shared/reference/hitl", "shared/reference/hitl")
 """Where the demo looks for the authors' ``.jld`` recordings (relative to the working directory)."""
@@ -47,12 +48,12 @@ def find_hitl_dir(explicit: str | Path | None) -> Path | None:
     return next((Path(d) for d in DEFAULT_HITL_DIRS if any(Path(d).glob("*.jld"))), None)
 
 
-def run_demo(out: str | Path, trials: int = 1105, seed: int = 0, hitl: str | Path | None = None,
+def run_demo(out: str | Path, trials: int = STUDY_TRIALS, seed: int = 0, hitl: str | Path | None = None,
              log: Callable[[str], None] = print) -> None:
     """Run the main job into folder ``out`` (datasets and ``figures/``), reporting through ``log``."""
     from .data.behaviour import behaviour_samples, compare_behaviour, format_comparison
     from .sim.generate import generate_trials
-    from .data.stats import format_table1, table1
+    from .data.stats import format_table1, format_table1_test, table1, table1_test
     from .viz.figures import write_dataset_figures
 
     out = Path(out)
@@ -64,6 +65,7 @@ def run_demo(out: str | Path, trials: int = 1105, seed: int = 0, hitl: str | Pat
         f"({report.simulated} simulated, rejected {report.rejected}) -> {out / 'human_human.parquet'}")
     t1 = table1(dataset)
     log(format_table1(t1["table1"], t1["counts"]))
+    log(format_table1_test(table1_test(t1["table1"], t1["counts"])))
 
     reference = None
     if hitl_dir is not None:

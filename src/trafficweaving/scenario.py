@@ -58,6 +58,8 @@ DELTA_V_VALUES = (-2.0, 0.0, 2.0)
 """Speed difference of car B relative to car A at the start, m/s."""
 TCO_VALUES = (1.0, 2.0, 3.0)
 """Crossover times: seconds until the cars would be side by side with no control, s."""
+STUDY_TRIALS = 1105
+"""Valid human–human trials of the paper's study (§V-A; 19 pairs of drivers)."""
 
 HORIZON = 15
 """Steps of the future the human model predicts and the planner plans (1.5 s; paper §IV-A)."""
@@ -184,6 +186,26 @@ def colliding(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Whether two cars collide, for their states ``a``, ``b`` ``[..., 6]`` at the same steps:
     ``|Δx| < COLLISION_DX`` and ``|Δy| < COLLISION_DY``; shape ``[...]``."""
     return (np.abs(a[..., 0] - b[..., 0]) < COLLISION_DX) & (np.abs(a[..., 1] - b[..., 1]) < COLLISION_DY)
+
+
+def at_fault_collision(a: np.ndarray, b: np.ndarray, steps: np.ndarray | None = None) -> np.ndarray:
+    """Whether car ``a`` collides with car ``b`` and is at fault, for their trajectories ``a``,
+    ``b`` ``[n, T, 6]`` (at the steps where ``steps [n, T]`` is true; all when None), after
+    nuPlan's at-fault rule adapted to two cars that both change lanes. At the first colliding step:
+    when the cars already overlapped laterally one step before (|Δy| < ``COLLISION_DY``) and only
+    the longitudinal gap closed, the car behind is at fault (a rear-end collision); otherwise (a
+    side collision) the car moving sideways towards the other at least as fast as the other moves
+    towards it is. Shape ``[n]`` (bool); a collision at the first step is both cars' fault."""
+    hit = colliding(a, b) if steps is None else colliding(a, b) & steps
+    rows = np.arange(len(a))
+    k = hit.argmax(axis=1)
+    before = np.maximum(k - 1, 0)
+    rear_end = (k > 0) & (np.abs(a[rows, before, 1] - b[rows, before, 1]) < COLLISION_DY) & ~(
+        np.abs(a[rows, before, 0] - b[rows, before, 0]) < COLLISION_DX)
+    towards = np.sign(b[rows, k, 1] - a[rows, k, 1])  # +1: b is to a's left
+    a_sideways, b_sideways = a[rows, k, 3] * towards, -b[rows, k, 3] * towards  # m/s towards the other
+    fault = np.where(rear_end, a[rows, k, 0] < b[rows, k, 0], a_sideways >= b_sideways) | (k == 0)
+    return hit.any(axis=1) & fault
 
 
 def time_to_collision(a: np.ndarray, b: np.ndarray) -> np.ndarray:

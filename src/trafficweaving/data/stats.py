@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scenario import TCO_VALUES, across_divider
+from scipy import stats as scipy_stats
+
+from ..scenario import STUDY_TRIALS, TCO_VALUES, across_divider
 from .trials import TrialSet
 
 TABLE1_PAPER = {
@@ -19,6 +21,10 @@ TABLE1_PAPER = {
     "2": {"1": 0.857, "2": 0.762, "3": 0.667},
 }
 """Table I of the paper: fraction of human–human trials where the left-lane car passes in front."""
+TABLE1_PAPER_TRIALS = {dv: {k: STUDY_TRIALS / (3 if dv == "0" else 9) for k in cells} for dv, cells in TABLE1_PAPER.items()}
+"""Trials behind each cell of the paper's Table I. The paper gives only the total (1105 valid
+human–human trials over the 18 initial conditions); taken as spread evenly (each published
+percentage is a whole number of trials out of 119–125, or 369 for Δv = 0)."""
 
 
 def swap_step(trials: TrialSet) -> np.ndarray:
@@ -73,6 +79,49 @@ def table1_max_deviation(table: dict, reference: dict = TABLE1_PAPER) -> float |
         if table.get(dv, {}).get(k) is not None and reference[dv][k] is not None
     ]
     return max(diffs) if diffs else None
+
+
+def table1_test(table: dict, counts: dict) -> dict | None:
+    """Whether a Table I (``table`` and ``counts`` of :func:`table1`) is consistent with the
+    paper's, as a two-sample comparison of proportions: each filled cell's ``difference``
+    (fraction, ours minus the paper's), its standard error ``se`` (both samples' binomial errors;
+    the paper's cell sizes :data:`TABLE1_PAPER_TRIALS`) and the pooled two-proportion ``z``; over
+    the cells ``chi2`` = Σ z² with ``dof`` = the number of cells and its ``p_value`` (small: the
+    tables differ by more than sampling error). None when no cell is filled.
+
+    Both tables are samples: with the paper's cell sizes, a simulator that plays exactly the
+    study's rates gets every cell within 5 pp of the paper in only about one in eight runs of
+    1105 trials (and at most one in three with many more trials), so a largest difference alone
+    cannot say whether a table fits."""
+    cells: dict = {}
+    for dv, reference in TABLE1_PAPER.items():
+        for k, q in reference.items():
+            p, n, m = table.get(dv, {}).get(k), counts.get(dv, {}).get(k, 0), TABLE1_PAPER_TRIALS[dv][k]
+            if p is None or n == 0:
+                continue
+            pooled = (p * n + q * m) / (n + m)
+            spread = np.sqrt(pooled * (1 - pooled) * (1 / n + 1 / m))
+            cells.setdefault(dv, {})[k] = {
+                "difference": float(p - q), "se": float(np.sqrt(p * (1 - p) / n + q * (1 - q) / m)),
+                "z": float((p - q) / spread) if spread > 0 else 0.0}
+    if not cells:
+        return None
+    chi2 = float(sum(c["z"] ** 2 for row in cells.values() for c in row.values()))
+    dof = sum(len(row) for row in cells.values())
+    return {"cells": cells, "chi2": chi2, "dof": dof, "p_value": float(scipy_stats.chi2.sf(chi2, dof))}
+
+
+def format_table1_test(test: dict | None) -> str:
+    """One line: the largest difference from the paper's Table I and the χ² test of
+    :func:`table1_test`."""
+    if test is None:
+        return "vs the paper's Table I: no filled cell"
+    dv, k, cell = max(((dv, k, c) for dv, row in test["cells"].items() for k, c in row.items()),
+                      key=lambda item: abs(item[2]["difference"]))
+    where = "Δv = 0" if k == "all" else f"Δv = {int(dv):+d} m/s, tco = {k} s"
+    verdict = "consistent with" if test["p_value"] >= 0.05 else "differs from"
+    return (f"vs the paper's Table I: largest difference {100 * cell['difference']:+.1f} pp ({where}, z {cell['z']:+.1f}); "
+            f"χ²({test['dof']}) = {test['chi2']:.1f}, p = {test['p_value']:.3f}: {verdict} the study at the 5 % level")
 
 
 def format_table1(table: dict, counts: dict) -> str:

@@ -3,8 +3,9 @@
 A checkpoint is a ``torch.save`` dictionary readable with ``weights_only=True`` (no pickled code):
 ``format``, ``version`` (5), ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
 and standardisation buffers), for a :class:`~trafficweaving.model.mixture.Mixture` ``mixture``
-(``weights``, one per component, and ``components``: the ``config`` and ``state_dict`` of every
-component after the first, which is the file's own model), ``tensor_sha256`` (a SHA-256 of every tensor in the file, see
+(``weights``, one per component, optionally ``person_weights``, the weights of a driver facing a
+person, and ``components``: the ``config`` and ``state_dict`` of every component after the first,
+which is the file's own model), ``tensor_sha256`` (a SHA-256 of every tensor in the file, see
 :func:`tensor_digest`), ``data_fingerprint``, ``step``, ``history`` (validation NLL by step) and, in
 training checkpoints, ``train_config``, ``optimizer`` and ``rng`` for resuming.
 
@@ -139,6 +140,8 @@ def save_checkpoint(path: str | Path, model: CVAE | Mixture, **fields) -> None:
     if isinstance(model, Mixture):
         mixture = {"mixture": {"weights": model.weights,
                                "components": [_model_fields(c) for c in model.components[1:]]}}
+        if model.person_weights is not None:
+            mixture["mixture"]["person_weights"] = model.person_weights
         model = model.components[0]
     payload = {"format": FORMAT, "version": VERSION, **_model_fields(model), **mixture,
                **{k: v for k, v in fields.items() if k not in RESERVED}}
@@ -317,10 +320,15 @@ def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE | Mixture:
             and all(math.isfinite(w) and w > 0 for w in weights)):
         raise InputError(f"{path}: checkpoint field mixture is not a mixture (expected weights, positive numbers, one per "
                          f"component, and components, a config and state_dict for each after the first; {WRITTEN_BY_US})")
+    person = mixture.get("person_weights")
+    if person is not None and not (_is_list_of(person, _is_number) and len(person) == len(weights)
+                                   and all(math.isfinite(w) and w >= 0 for w in person) and sum(person) > 0):
+        raise InputError(f"{path}: checkpoint field mixture.person_weights is not a list of weights (expected one "
+                         f"non-negative number per component, not all zero; {WRITTEN_BY_US})")
     others = [_cvae_from_checkpoint({**c, "version": payload["version"]}, f"{path} (mixture component {k + 2})")
               for k, c in enumerate(components)]
     try:
-        return Mixture([model, *others], weights).eval()
+        return Mixture([model, *others], weights, person).eval()
     except ValueError as exc:
         raise InputError(f"{path}: {exc}") from None
 

@@ -23,10 +23,17 @@ from ..scenario import HORIZON
 from .cvae import ACTION_DIM, CVAE, Batch
 
 
-class Mixture(nn.Module):
-    """Components ``[CVAE, ...]`` (at least two) with ``weights`` (positive, normalised here)."""
+FACING = ("robot", "person")
+"""Who the other car is, for a driver whose mixture weights depend on it (:func:`facing`)."""
 
-    def __init__(self, components: Sequence[CVAE], weights: Sequence[float]):
+
+class Mixture(nn.Module):
+    """Components ``[CVAE, ...]`` (at least two) with ``weights`` (positive, normalised here), and
+    optionally other weights ``person_weights`` (non-negative, not all zero) for a driver whose
+    other car is a person (:func:`facing`)."""
+
+    def __init__(self, components: Sequence[CVAE], weights: Sequence[float],
+                 person_weights: Sequence[float] | None = None):
         super().__init__()
         if len(components) < 2 or len(weights) != len(components):
             raise ValueError(f"a mixture needs at least two components and one weight each, got {len(components)} "
@@ -44,6 +51,13 @@ class Mixture(nn.Module):
                 raise ValueError("mixture components must share the standardisation (fine-tune one from the other)")
         self.components = nn.ModuleList(components)
         self.register_buffer("log_weights", torch.log(w / w.sum()))
+        self.person_weights = None
+        if person_weights is not None:
+            p = torch.as_tensor(person_weights, dtype=torch.float64)
+            if not (len(p) == len(components) and torch.isfinite(p).all() and (p >= 0).all() and p.sum() > 0):
+                raise ValueError(f"mixture weights facing a person must be one per component, non-negative and not all "
+                                 f"zero, got {p.tolist()}")
+            self.person_weights = (p / p.sum()).tolist()
 
     @property
     def weights(self) -> list[float]:
@@ -100,6 +114,22 @@ class Mixture(nn.Module):
         return out
 
 
+def facing(model: CVAE | Mixture, other: str) -> CVAE | Mixture:
+    """The model of a driver whose other car is ``other`` (one of :data:`FACING`): ``model`` itself,
+    except a mixture with ``person_weights`` facing a person: its components so weighted (one
+    alone when only one has weight). People drive against a robot differently from against a
+    person: the shipped ``driver`` is fine-tuned on people facing the authors' planner and mixed
+    with the authors' model of people facing people (docs/realism.md)."""
+    if other not in FACING:
+        raise ValueError(f"other car {other!r} is unknown (expected one of {', '.join(FACING)})")
+    if other == "robot" or not isinstance(model, Mixture) or model.person_weights is None:
+        return model
+    kept = [(c, w) for c, w in zip(model.components, model.person_weights) if w > 0]
+    if len(kept) == 1:
+        return kept[0][0]
+    return Mixture([c for c, _ in kept], [w for _, w in kept]).eval()
+
+
 def conditioned_on(model: CVAE, robot_future: str) -> CVAE:
     """``model`` conditioned on ``robot_future`` (:attr:`CVAEConfig.robot_future`), weights kept:
     e.g. the authors' model, trained on recorded futures, given the guess a driver model drives with
@@ -112,5 +142,7 @@ def conditioned_on(model: CVAE, robot_future: str) -> CVAE:
 def describe(model: CVAE | Mixture) -> str:
     """A model's variant for people: ``cvae-hold``, or ``mixture of cvae-hold (0.95), cvae (0.05)``."""
     if isinstance(model, Mixture):
-        return "mixture of " + ", ".join(f"{c.config.name} ({w:.3g})" for c, w in zip(model.components, model.weights))
+        weights = lambda ws: ", ".join(f"{c.config.name} ({w:.3g})" for c, w in zip(model.components, ws))  # noqa: E731
+        person = f"; facing a person {weights(model.person_weights)}" if model.person_weights is not None else ""
+        return f"mixture of {weights(model.weights)}{person}"
     return model.config.name

@@ -69,7 +69,7 @@ def simulate_trials(ic_index: np.ndarray, pair: np.ndarray, styles: DriverStyles
                     device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
     """Simulate human–human trials on the world with both cars driven by :class:`SyntheticDrivers`
     (or, with ``drivers`` another human spec of :func:`~trafficweaving.sim.humans.human_agent`,
-    e.g. ``model:driver``, by two such agents: self-play).
+    e.g. ``model:driver``, by two such agents, each facing a person: self-play).
 
     ``ic_index``, ``pair``: ``[m]`` initial condition and driver pair of each trial; ``styles``:
     the traits of all drivers (driver ``2p`` is car A of pair ``p``, ``2p + 1`` car B).
@@ -81,7 +81,7 @@ def simulate_trials(ic_index: np.ndarray, pair: np.ndarray, styles: DriverStyles
     if drivers == "synthetic":
         cars = [SyntheticDrivers(styles.take(2 * pair + k), model, mood=moods[:, k]) for k in (0, 1)]
     else:
-        cars = [human_agent(drivers, device) for _ in (0, 1)]
+        cars = [human_agent(drivers, device, other="person") for _ in (0, 1)]
     return run_episodes(start, cars, rng, progress=progress).recorded()
 
 

@@ -27,6 +27,7 @@ from ..dynamics import constant_acceleration_future, future_states, without_reve
 from ..errors import InputError
 from ..model.checkpoint import load_model
 from ..model.cvae import CVAE
+from ..model.mixture import Mixture, facing
 from ..planning.steering import steer
 from ..scenario import (CUTOFF_X, DT, HORIZON, MIN_HISTORY, SWAP_THRESHOLD_Y, across_divider, colliding, lane_centre_y,
                         lane_of, on_road)
@@ -135,6 +136,10 @@ class ModelDriver:
     a driver model (one conditioned on the guess, ``CVAEConfig.robot_future == "guess"``), 1 and 0
     (plain samples) for the paper's models.
 
+    ``other``: who the other car ("the robot" below) is, ``robot`` or ``person``; a mixture with
+    weights for facing a person (the shipped ``driver``) drives with those against a person
+    (:func:`~trafficweaving.model.mixture.facing`).
+
     The robot's future: by default the guess :func:`constant_acceleration_future` (the robot holds
     its present acceleration). With ``robot_plan=True`` the simulation tells it the robot's plan:
     before *every* :meth:`act` it sets :attr:`robot_future` to the robot's planned states
@@ -145,11 +150,15 @@ class ModelDriver:
     BLOCK = 3
     """Steps executed from each sample (0.3 s)."""
 
-    def __init__(self, model: CVAE, robot_plan: bool = False, proposals: int | None = None,
-                 anticipation: int | None = None):
+    def __init__(self, model: CVAE | Mixture, robot_plan: bool = False, proposals: int | None = None,
+                 anticipation: int | None = None, other: str = "robot"):
         if robot_plan and model.config.robot_future == "guess":
             raise InputError("this model is conditioned on a guess of the robot's future, not on its plan "
                              "(expected a model conditioned on recorded futures for robot_plan)")
+        try:
+            model = facing(model, other)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
         self.model = model.eval()
         if proposals is None:
             proposals = DRIVER_PROPOSALS if model.config.robot_future == "guess" else 1
@@ -325,10 +334,10 @@ def _replay_target(target: str) -> tuple[str, int | None]:
     return (path, int(trial)) if path and trial.isdigit() else (target, None)
 
 
-def human_agent(spec: str, device: torch.device | str = "cpu", robot_plan: bool = False) -> Agent:
+def human_agent(spec: str, device: torch.device | str = "cpu", robot_plan: bool = False, other: str = "robot") -> Agent:
     """The human agent of ``spec`` (:data:`HUMAN_SPECS`): ``synthetic`` (:class:`SampledDrivers`),
     ``model:SPEC`` (:class:`ModelDriver` of :func:`~trafficweaving.model.checkpoint.load_model`'s
-    ``SPEC``, on ``device``; ``robot_plan`` as there) or ``replay:FILE[#K]`` (:class:`ReplayDriver`
+    ``SPEC``, on ``device``; ``robot_plan`` and ``other``, who the other car is, as there) or ``replay:FILE[#K]`` (:class:`ReplayDriver`
     of the Parquet dataset ``FILE``, trial id ``K`` or drawn per episode). InputError for an
     unknown spec, a missing or invalid file, or ``robot_plan`` with a human that is not a model."""
     kind, _, target = spec.partition(":")
@@ -341,7 +350,7 @@ def human_agent(spec: str, device: torch.device | str = "cpu", robot_plan: bool 
     if spec == "constant-velocity":
         return ConstantVelocityDriver()
     if kind == "model" and target:
-        return ModelDriver(load_model(target, device), robot_plan=robot_plan)
+        return ModelDriver(load_model(target, device), robot_plan=robot_plan, other=other)
     if kind == "replay" and target:
         path, trial = _replay_target(target)
         return ReplayDriver(load_trials(path), trial)

@@ -12,7 +12,9 @@ robot's car index), judged by the scenario's rules
 * ``success``: the robot swapped, no collision, both cars on the road and past the cutoff (the
   outcome is ``valid`` or ``no_lane_swap`` by the human alone);
 * ``collision``: the scenario's rule (``|Δx| < COLLISION_DX`` and ``|Δy| < COLLISION_DY`` at a
-  recorded step);
+  recorded step); ``robot_at_fault``: a collision with the robot at fault, by nuPlan's at-fault
+  rule (:func:`~trafficweaving.scenario.at_fault_collision`: the car behind in a rear-end
+  collision, the one moving sideways into the other in a side collision);
 * ``near_collision``: a recorded step where the paper's collision cost ``J_c`` of
   :meth:`PaperCost.terms <trafficweaving.planning.costs.PaperCost.terms>` is positive (``|Δs| <
   8 m`` and ``|Δτ| < 2 m``, §V-C); every collision is also a near collision;
@@ -56,7 +58,7 @@ from scipy import stats
 
 from ..planning.costs import PaperCost
 from ..scenario import (COLLISION_DY, CUTOFF_X, DT, LANE_CENTRE_Y, LANE_DIVIDER_Y, REPLAN_PERIOD_S, VALIDITY_REASONS,
-                        check_validity, lane_of, on_road, swapped_before_cutoff, time_to_collision)
+                        at_fault_collision, check_validity, lane_of, on_road, swapped_before_cutoff, time_to_collision)
 
 Z95 = float(stats.norm.ppf(0.975))
 """Two-sided 95 % standard normal quantile (1.96)."""
@@ -111,6 +113,7 @@ def episode_metrics(states: np.ndarray, length: int, robot: int, dt: float = DT)
         "robot_swapped": robot_swapped,
         "human_swapped": human_swapped,
         "collision": outcome == "collision",
+        "robot_at_fault": bool(at_fault_collision(states[robot][None], states[human][None])[0]),
         "near_collision": bool(near_collision_steps(states[robot], states[human]).any()),
         "min_gap_m": float(dx[overlap].min()) if overlap.any() else None,
         "min_distance_m": float(np.hypot(dx, dy).min()),
@@ -251,6 +254,7 @@ def _group(records: Sequence[dict]) -> dict:
         "success_rate": rate(column("success")),
         "collisions": sum(column("collision")),
         "collision_rate": rate(column("collision")),
+        "robot_at_fault_collisions": sum(bool(m.get("robot_at_fault")) for m in metrics),
         "near_collisions": sum(column("near_collision")),
         "near_collision_rate": rate(column("near_collision")),
         "robot_first_rate": rate(column("robot_first")),
@@ -275,7 +279,8 @@ def aggregate(records: Sequence[dict]) -> dict:
 
     Returns ``episodes``, ``outcomes`` (count per ``VALIDITY_REASONS``), rates with Wilson
     intervals (``success_rate``, ``collision_rate``, ``near_collision_rate``, ``robot_first_rate``,
-    ``human_swap_rate``: ``count``, ``rate``, ``ci95``), counts ``collisions`` and
+    ``human_swap_rate``: ``count``, ``rate``, ``ci95``), counts ``collisions`` (and of them
+    ``robot_at_fault_collisions``, :func:`~trafficweaving.scenario.at_fault_collision`) and
     ``near_collisions``, means with t-intervals (``min_gap_m`` over the episodes where it is defined,
     also with its ``min``; ``min_distance_m``;
     ``time_to_swap_s`` over episodes where the robot changed lane, ``accel_rms`` and ``jerk_rms``

@@ -18,7 +18,8 @@ bin the real value falls in; per stream the exponent of its mean log over the st
 then averaged over streams, so each feature scores in [0, 1]. Features average into three groups
 (``kinematic``, ``interactive``, ``road``) and the groups, weighted by :data:`GROUP_WEIGHTS`, into
 one ``realism`` score in [0, 1]. Rates over the rollouts (lane swap before the cutoff, off road,
-collision) are reported next to the recording's. docs/realism.md has the table of every agent.
+collision, collision with the human car at fault) are reported next to the recording's.
+docs/realism.md has the table of every agent.
 """
 
 from __future__ import annotations
@@ -33,8 +34,8 @@ from ..data.behaviour import HOLD_TOLERANCE, lane_change_events
 from ..data.stats import swap_step
 from ..data.trials import TrialSet
 from ..model.exemplars import build_exemplars
-from ..scenario import (CUTOFF_X, DT, MIN_HISTORY, ROAD_Y_MAX, ROAD_Y_MIN, across_divider, colliding, on_road,
-                        swapped_before_cutoff, time_to_collision)
+from ..scenario import (CUTOFF_X, DT, MIN_HISTORY, ROAD_Y_MAX, ROAD_Y_MIN, across_divider, at_fault_collision, colliding,
+                        on_road, swapped_before_cutoff, time_to_collision)
 from .humans import ReplayedCar
 from .world import Agent, run_episodes
 
@@ -205,15 +206,19 @@ def feature_values(streams: Streams, flags: dict[str, np.ndarray]) -> dict[str, 
 def rates(streams: Streams) -> dict[str, np.ndarray]:
     """Per stream ``[n]`` (bool): the human car's ``swap`` (across the divider before the cutoff,
     :func:`~trafficweaving.scenario.swapped_before_cutoff`, over the whole rollout), ``off_road``
-    (off the road at a driven recorded step before it reaches the cutoff) and ``collision`` (with
-    the other car, at any recorded step: past the recording the other car is no longer real)."""
+    (off the road at a driven recorded step before it reaches the cutoff), ``collision`` (with
+    the other car, at any recorded step: past the recording the other car is no longer real) and
+    ``at_fault_collision`` (such a collision with the human car at fault,
+    :func:`~trafficweaving.scenario.at_fault_collision`: the replayed car does not react, so it may
+    move into a rollout that is where the real car was not)."""
     s, lengths = streams.states, streams.lengths
     steps = np.arange(s.shape[2])[None, :]
     recorded = steps < streams.recorded[:, None]
     before_cutoff = recorded & (steps >= MIN_HISTORY) & (np.fmax.accumulate(np.nan_to_num(s[:, 1, :, 0], nan=-np.inf), axis=1) < CUTOFF_X)
     return {"swap": swapped_before_cutoff(s, lengths)[:, 1],
             "off_road": (~on_road(s[:, 1, :, 1]) & before_cutoff).any(axis=1),
-            "collision": (colliding(s[:, 0], s[:, 1]) & recorded).any(axis=1)}
+            "collision": (colliding(s[:, 0], s[:, 1]) & recorded).any(axis=1),
+            "at_fault_collision": at_fault_collision(s[:, 1], s[:, 0], recorded)}
 
 
 def bin_index(values: np.ndarray, feature: Feature) -> np.ndarray:
@@ -241,8 +246,9 @@ def feature_likelihood(real: np.ndarray, rolled: np.ndarray, feature: Feature) -
 @dataclass
 class Realism:
     """Per-stream feature likelihoods ``likelihoods {name: [n]}`` and rates of the rollouts
-    ``rolled_rates {swap, off_road, collision: [n]}`` (fraction of each stream's rollouts) and of
-    the recordings ``real_rates`` (``[n]`` bool), for ``trial_ids [n]``, with ``rollouts`` each."""
+    ``rolled_rates {swap, off_road, collision, at_fault_collision: [n]}`` (fraction of each stream's
+    rollouts) and of the recordings ``real_rates`` (``[n]`` bool), for ``trial_ids [n]``, with
+    ``rollouts`` each."""
 
     likelihoods: dict[str, np.ndarray]
     rolled_rates: dict[str, np.ndarray]
@@ -258,14 +264,15 @@ class Realism:
 
     def summary(self) -> dict:
         """``realism``, ``groups``, ``features`` (means over streams), ``trials``, ``streams``,
-        ``rollouts``, the rollouts' ``swap_rate``, ``off_road_rate``, ``collision_rate`` and the
-        recordings' ``real_swap_rate``, ``real_off_road_rate``, ``real_collision_rate``."""
+        ``rollouts``, the rollouts' ``swap_rate``, ``off_road_rate``, ``collision_rate``,
+        ``at_fault_collision_rate`` and the recordings' ``real_swap_rate``, ``real_off_road_rate``,
+        ``real_collision_rate``, ``real_at_fault_collision_rate``."""
         features = {name: float(v.mean()) for name, v in self.likelihoods.items()}
         groups = {g: float(np.mean([features[f] for f, spec in FEATURES.items() if spec.group == g])) for g in GROUP_WEIGHTS}
         out = {"realism": float(sum(w * groups[g] for g, w in GROUP_WEIGHTS.items())), "groups": groups,
                "features": features, "trials": int(len(np.unique(self.trial_ids))), "streams": int(len(self.trial_ids)),
                "rollouts": self.rollouts}
-        for key in ("swap", "off_road", "collision"):
+        for key in ("swap", "off_road", "collision", "at_fault_collision"):
             out[f"{key}_rate"] = float(self.rolled_rates[key].mean())
             out[f"real_{key}_rate"] = float(self.real_rates[key].mean())
         return out
@@ -285,13 +292,15 @@ def score_streams(streams: Streams, rolled: Streams, rollouts: int) -> Realism:
     return Realism(likelihoods, rolled_rates, real_flags, streams.trial_ids, rollouts)
 
 
-def realism(trials: TrialSet, agents: Callable[[np.ndarray], list[tuple[np.ndarray, Agent]]], rollouts: int = ROLLOUTS,
-            seed: int = 0, progress: bool = False) -> Realism:
+def realism(trials: TrialSet, agents: Callable[[np.ndarray, str], list[tuple[np.ndarray, Agent]]],
+            rollouts: int = ROLLOUTS, seed: int = 0, progress: bool = False) -> Realism:
     """The realism of a human agent on ``trials``' human streams (module docstring).
 
-    ``agents(trial_ids)`` splits the trial ids ``[k]`` into groups, each with the agent that drives
-    them: one group for a fixed agent, one per fold for an agent trained on the trials
-    (out-of-fold). ``rollouts`` per stream; seeded from ``seed``."""
+    ``agents(trial_ids, other)`` splits the trial ids ``[k]`` into groups, each with the agent that
+    drives them, facing ``other`` (:func:`~trafficweaving.model.mixture.facing`: ``person`` in
+    trials where both cars are labelled human, else ``robot``): one group for a fixed agent, one per
+    fold for an agent trained on the trials (out-of-fold). ``rollouts`` per stream; seeded from
+    ``seed``."""
     if not (isinstance(rollouts, int) and rollouts >= 2):
         raise ValueError(f"rollouts must be an integer of at least 2, got {rollouts!r}")
     streams = Streams.of(trials)
@@ -303,7 +312,11 @@ def realism(trials: TrialSet, agents: Callable[[np.ndarray], list[tuple[np.ndarr
                          f"(expected more than the {MIN_HISTORY} recorded steps a rollout starts from)")
     rng = np.random.default_rng(seed)
     parts = []
-    groups = agents(np.unique(streams.trial_ids))
+    trial_ids = np.unique(streams.trial_ids)
+    human_human = np.isin(trial_ids, trials.trial_ids[(trials.roles == "human").all(axis=1)])
+    by_other = {"robot": trial_ids[~human_human], "person": trial_ids[human_human]}
+    groups = [(np.intersect1d(ids, facing_ids), agent) for other, facing_ids in by_other.items() if len(facing_ids)
+              for ids, agent in agents(facing_ids, other)]
     for ids, agent in tqdm(groups, desc="realism", unit="group", disable=not progress or len(groups) == 1):
         part = streams.select(np.isin(streams.trial_ids, ids))
         if len(part):
