@@ -402,7 +402,7 @@ def test_summaries_never_hold_nan_or_infinity():
 def test_table1_test_is_calibrated_on_tables_drawn_at_the_papers_rates():
     """Tables played at the study's true rates (each cell's rate drawn from what its published
     percentage and size leave possible, a Beta posterior) are judged consistent about 95 % of the
-    time, and fall within 5 pp of the paper in every cell only about one time in eight."""
+    time, and fall within 5 pp of the paper in every cell only about one time in nine."""
     rng = np.random.default_rng(0)
     cells = [(dv, k) for dv, row in TABLE1_PAPER.items() for k in row]
     sizes = {cell: round(TABLE1_PAPER_TRIALS[cell[0]][cell[1]]) for cell in cells}

@@ -9,7 +9,6 @@ undefined, so results serialise as strict JSON.
 from __future__ import annotations
 
 import numpy as np
-
 from scipy import stats as scipy_stats
 
 from ..scenario import STUDY_TRIALS, TCO_VALUES, across_divider
@@ -90,9 +89,9 @@ def table1_test(table: dict, counts: dict) -> dict | None:
     tables differ by more than sampling error). None when no cell is filled.
 
     Both tables are samples: with the paper's cell sizes, a simulator that plays exactly the
-    study's rates gets every cell within 5 pp of the paper in only about one in eight runs of
-    1105 trials (and at most one in three with many more trials), so a largest difference alone
-    cannot say whether a table fits."""
+    study's rates gets every cell within 5 pp of the paper in only about one run of 1105 trials
+    in nine (about one in three with ten times more trials), so a largest difference alone cannot
+    say whether a table fits."""
     cells: dict = {}
     for dv, reference in TABLE1_PAPER.items():
         for k, q in reference.items():
