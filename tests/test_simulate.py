@@ -213,6 +213,8 @@ def test_aggregate_breakdown():
                for m, ic, lat in zip((good, good, crash), ics, ([0.1, 0.2], [0.4], []))]
     s = aggregate(records)
     assert s["episodes"] == 3 and s["collisions"] == 1 and s["near_collisions"] == 1 and s["robot_at_fault_collisions"] == 1
+    old_log = [{**r, "metrics": {k: v for k, v in r["metrics"].items() if k != "robot_at_fault"}} for r in records]
+    assert aggregate(old_log)["robot_at_fault_collisions"] is None  # unknown, not "not at fault"
     assert s["success_rate"]["count"] == 2 and s["success_rate"]["ci95"] == wilson_interval(2, 3)
     assert s["outcomes"]["valid"] == 2 and s["outcomes"]["collision"] == 1
     assert s["planner_latency_s"]["plans"] == 3 and s["planner_latency_s"]["median"] == pytest.approx(0.2)

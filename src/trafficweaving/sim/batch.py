@@ -272,7 +272,7 @@ def summary_table(summary: dict) -> str:
         f"{summary['episodes']} episodes, robot {summary['robot']} vs human {summary['human']}, seed {summary['seed']} "
         f"({summary['computed']} computed, {summary['reused']} reused) -> {summary['out']}",
         f"success {pct(summary['success_rate'])}   collisions {summary['collisions']} ({pct(summary['collision_rate'])}; "
-        f"robot at fault {summary['robot_at_fault_collisions']})   "
+        f"robot at fault {num(summary['robot_at_fault_collisions'], 0)})   "
         f"near collisions {summary['near_collisions']} ({pct(summary['near_collision_rate'])})",
         f"robot first {pct(summary['robot_first_rate'])}   human swapped {pct(summary['human_swap_rate'])}   "
         f"time to swap {num(summary['time_to_swap_s']['mean'])} s",

@@ -244,6 +244,13 @@ def initial_condition_key(ic: dict) -> tuple:
     return ic["dv"], (None if ic["dv"] == 0 else ic["tco"]), ic["robot_lane"]
 
 
+def _at_fault_count(metrics: Sequence[dict]) -> int | None:
+    """Collisions with the robot at fault; None when a colliding episode was logged before the
+    metric existed (a resumed old run), rather than counting it as not at fault."""
+    faults = [m.get("robot_at_fault") for m in metrics if m["collision"]]
+    return None if None in faults else sum(faults)
+
+
 def _group(records: Sequence[dict]) -> dict:
     """The aggregate of episode records (see :func:`aggregate`) without the breakdown."""
     metrics = [r["metrics"] for r in records]
@@ -254,7 +261,7 @@ def _group(records: Sequence[dict]) -> dict:
         "success_rate": rate(column("success")),
         "collisions": sum(column("collision")),
         "collision_rate": rate(column("collision")),
-        "robot_at_fault_collisions": sum(bool(m.get("robot_at_fault")) for m in metrics),
+        "robot_at_fault_collisions": _at_fault_count(metrics),
         "near_collisions": sum(column("near_collision")),
         "near_collision_rate": rate(column("near_collision")),
         "robot_first_rate": rate(column("robot_first")),
@@ -280,7 +287,8 @@ def aggregate(records: Sequence[dict]) -> dict:
     Returns ``episodes``, ``outcomes`` (count per ``VALIDITY_REASONS``), rates with Wilson
     intervals (``success_rate``, ``collision_rate``, ``near_collision_rate``, ``robot_first_rate``,
     ``human_swap_rate``: ``count``, ``rate``, ``ci95``), counts ``collisions`` (and of them
-    ``robot_at_fault_collisions``, :func:`~trafficweaving.scenario.at_fault_collision`) and
+    ``robot_at_fault_collisions``, :func:`~trafficweaving.scenario.at_fault_collision`; None when
+    a colliding episode's log predates it) and
     ``near_collisions``, means with t-intervals (``min_gap_m`` over the episodes where it is defined,
     also with its ``min``; ``min_distance_m``;
     ``time_to_swap_s`` over episodes where the robot changed lane, ``accel_rms`` and ``jerk_rms``
