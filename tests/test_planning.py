@@ -199,7 +199,7 @@ def test_fast_sampler_equals_the_models_sampling_given_the_same_random_numbers(v
 @pytest.mark.parametrize("variant, calibration", [("cvae", None), ("lstm", None), ("cvae-hold", None),
                                                   ("cvae-hold", (3.0, 1.7))])
 def test_fused_decoder_steps_equal_the_fast_sampler_given_the_same_random_numbers(variant, calibration):
-    """The fused, feature-major steps of precision int8, with its weights left unquantised, are the
+    """The fused steps of precision int8, with its weights left unquantised, are the
     batched sampler's decoder (float64, run eagerly)."""
     torch.manual_seed(0)
     model = CVAE(CVAEConfig.variant(variant)).double().eval()
@@ -214,8 +214,7 @@ def test_fused_decoder_steps_equal_the_fast_sampler_given_the_same_random_number
     g = torch.Generator().manual_seed(1)
     cand, z = torch.randint(6, (40,), generator=g), torch.randint(len(model.latent_onehots), (40,), generator=g)
     uniform, normal = torch.rand(40, 15, generator=g, dtype=torch.float64), torch.randn(40, 15, 2, generator=g, dtype=torch.float64)
-    ours = fused.decode(fused.prepare(context["x_gates"], context["x_init"], context["robot_inputs"]), cand, z,
-                        context["present_action"], uniform, normal)
+    ours = fused.decode(context, cand, z, context["present_action"], uniform, normal)
     reference = fast.decode_rows(context, cand, z, uniform, normal)
     torch.testing.assert_close(ours, reference, rtol=0, atol=1e-10)
 
@@ -228,10 +227,11 @@ def test_int8_weights_round_trip_within_half_a_step():
 
 
 def test_int8_precision_compiles_and_samples_what_float32_samples_to_quantisation_error():
-    """precision int8 (compiled) against the same steps run eagerly (same numbers to float rounding)
-    and against float32 with the same random numbers, on a trained model: the first step's draws
-    agree to within the quantisation, and over the 15 steps (where a draw that picks another
-    mixture component makes the rest of its future differ) about as closely as bfloat16's."""
+    """precision int8 (compiled) against the same steps run eagerly (the same numbers to float
+    rounding, but for rare draws on a component boundary) and against float32 with the same random
+    numbers, on a trained model: the first step's draws agree to within the quantisation, and over
+    the 15 steps (where a draw that picks another mixture component makes the rest of its future
+    differ) about as closely as bfloat16's."""
     model = load_model("default")
     history = example_history()
     futures = robot_candidates(history[-1, 0], 0).states[:64]
@@ -245,7 +245,11 @@ def test_int8_precision_compiles_and_samples_what_float32_samples_to_quantisatio
     assert difference.mean() < 2 * (a.actions - bf16.actions).abs().mean()
     coarse.rollout.fused.step = decode_step  # eagerly
     eager = coarse.predict(history, futures, n=8, seed=3)
-    torch.testing.assert_close(eager.actions, b.actions, rtol=0, atol=1e-3)
+    torch.testing.assert_close(eager.actions[:, :, 0], b.actions[:, :, 0], rtol=0, atol=1e-4)
+    # compiled multiply-adds round differently, so a draw on the boundary of two mixture components
+    # (or hold modes) may take the other one at a later step, and the rest of its future differs
+    agree = ((eager.actions - b.actions).abs() <= 1e-3).all(-1).float()  # [n, B, 15]
+    assert agree.mean() > 0.99 and agree[:, :, :5].mean() > 0.998
     with pytest.raises(InputError, match="CPU only"):
         resolve_precision("int8", "cuda")
 

@@ -20,7 +20,7 @@ the same samples, to rounding), reorganised for throughput:
 * rows run in cache-sized chunks.
 
 With int8 matrix multiplies (``matmul_dtype=torch.int8``) the steps run in
-:mod:`~trafficweaving.model.fused_decoder` instead: fused, compiled and feature-major.
+:mod:`~trafficweaving.model.fused_decoder` instead: fused and compiled.
 """
 
 from __future__ import annotations
@@ -130,11 +130,9 @@ class BatchedRollout:
         logits = m.p_z_logits(x)
         x_gates, x_init = x @ self.w_gate_x + self.gate_bias, x @ self.w_init_x + self.init_bias  # [C, 4u], [C, 2u]
         robot_inputs = robot_inputs.transpose(0, 1).contiguous()  # [15, C, 6]
-        decoder = ({"fused": self.fused.prepare(x_gates, x_init, robot_inputs)} if self.fused is not None
-                   else {"x_gates": x_gates, "x_init": x_init, "robot_inputs": robot_inputs})
         return {"log_p_z": torch.log_softmax(logits, dim=-1),  # [C, N_z, K_z]
                 "log_p_joint": m.joint_log_prob(logits),  # [C, Z]
-                "present_action": present_action, **decoder}
+                "present_action": present_action, "x_gates": x_gates, "x_init": x_init, "robot_inputs": robot_inputs}
 
     def sample_latents(self, context: dict, n: int, generator: torch.Generator | None, candidates: torch.Tensor | None = None) -> torch.Tensor:
         """Joint latent values ``[n, C']`` drawn from p(z|x) of each candidate (all, or ``candidates``)."""
@@ -160,6 +158,9 @@ class BatchedRollout:
                     normal: torch.Tensor) -> torch.Tensor:
         """Actions ``[R, 15, 2]`` (standardised) of ``R`` decoder rows: candidate ``rows_cand [R]``,
         latent value ``rows_z [R]``, uniforms ``[R, 15]`` and normals ``[R, 15, 2]``, in chunks."""
+        if self.fused is not None:
+            return self.fused.decode_rows(context, rows_cand, rows_z, context["present_action"], uniform, normal,
+                                          self.chunk_rows)
         out = torch.empty((len(rows_cand), HORIZON, 2), device=rows_cand.device, dtype=context["log_p_joint"].dtype)
         for start in range(0, len(rows_cand), self.chunk_rows):
             rows = slice(start, start + self.chunk_rows)
@@ -168,8 +169,6 @@ class BatchedRollout:
 
     def _decode_chunk(self, ctx: dict, cand: torch.Tensor, z: torch.Tensor, uniform: torch.Tensor,
                       normal: torch.Tensor) -> torch.Tensor:
-        if self.fused is not None:
-            return self.fused.decode(ctx["fused"], cand, z, ctx["present_action"], uniform, normal)
         units = self.latent_init.shape[1] // 2
         rows = len(cand)
         constant = (ctx["x_gates"].index_select(0, cand) + self.latent_gates.index_select(0, z)).to(self.matmul_dtype)  # [R, 4u]
