@@ -172,7 +172,7 @@ def decode_step(c: torch.Tensor, h: torch.Tensor, action: torch.Tensor, local: t
 def compiled_decode_step():
     """:func:`decode_step` compiled by Inductor (``torch.compile``; on its first call per model kind
     about 15 s on two cores, then cached on disk for later processes)."""
-    return torch.compile(decode_step, dynamic=False, options=COMPILE_OPTIONS)
+    return torch.compile(decode_step, options=COMPILE_OPTIONS)
 
 
 class FusedDecoder:
@@ -233,12 +233,14 @@ class FusedDecoder:
                                parts["robot_inputs"].index_select(1, distinct), self.w_robot.expand(HORIZON, -1, -1))
         uniform, normal = uniform.T.contiguous(), normal.permute(1, 2, 0).contiguous()  # [15, R], [15, 2, R]
         action = present[:, None].expand(2, len(cand)).contiguous()
-        if self.compiled:
-            for x, dim in ((c, 0), (h, 0), (local, 0), (z, 0), (uniform, 1), (normal, 2), (action, 1), (tables, 1)):
-                torch._dynamo.maybe_mark_dynamic(x, dim)  # one kernel for every number of rows and candidates
         actions = []
         for k in range(HORIZON):
-            c, h, action = self.step(c, h, action, local, z, tables[k], self.latent_gates, uniform[k], normal[k],
+            step_inputs = (tables[k], uniform[k], normal[k])
+            if self.compiled:  # one kernel for every number of rows and of candidates
+                for x, dim in ((c, 0), (h, 0), (action, 1), (local, 0), (z, 0), *((x, x.dim() - 1) for x in step_inputs[1:])):
+                    torch._dynamo.mark_dynamic(x, dim)
+                torch._dynamo.mark_dynamic(step_inputs[0], 0)
+            c, h, action = self.step(c, h, action, local, z, step_inputs[0], self.latent_gates, *step_inputs[1:],
                                      self.w_hidden, self.hidden_scale, self.w_action, self.w_head, self.head_scale,
                                      self.head_bias, self.output_scale, self.hold_sigma, self.modes, self.components)
             actions.append(action)
