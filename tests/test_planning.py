@@ -17,7 +17,7 @@ from trafficweaving.planning.candidates import (ACCELERATIONS, MOTIONS, N_ACTION
                                                 action_sequences, robot_candidates, rollout)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
-from trafficweaving.planning.planner import (MODES, SCREENING_SAMPLES, Budget, Mode, Planner, example_history,
+from trafficweaving.planning.planner import (MODES, OWN_FUTURES_SHARE, SCREENING_SAMPLES, Budget, Mode, Planner, example_history,
                                              risk_cost, turn_backs)
 from trafficweaving.planning.steering import optimal_time, steer, steering_cost
 from trafficweaving.scenario import DT, HORIZON, LANE_CENTRE_Y
@@ -409,6 +409,19 @@ def test_real_time_screening_conditions_on_each_window_1_action_held_then_on_the
     np.testing.assert_array_equal(finalists, plan.candidates.states[plan.finalists])
     assert plan.first_stage_samples == SCREENING_SAMPLES and plan.second_stage_samples >= 1  # one round at least
     assert np.isfinite(plan.first_stage_cost).all()  # every candidate screened, however short the deadline
+
+
+def test_real_time_stage_1_samples_every_candidates_own_futures_where_two_each_fit_in_time():
+    human = _RecordingHuman()
+    planner, history, fixed = Planner(human), _history(), Action.of(0.0, "right").index
+    planner.rows_per_second = 2.05 * N_CANDIDATES / (OWN_FUTURES_SHARE * 0.3)  # two each fit in 0.3 s
+    plan = planner.plan(history, fixed, PaperCost(goal_y=LEFT), deadline=0.3)
+    assert plan.first_stage_samples == 2 and len(human.prepared[0]) == N_CANDIDATES  # own futures, no screening
+    assert len(human.prepared) == 1 and plan.futures == 2 * N_CANDIDATES + plan.second_stage_samples * 32
+    human.prepared.clear()
+    planner.rows_per_second = 1.9 * N_CANDIDATES / (OWN_FUTURES_SHARE * 0.3)  # fewer than two: screening
+    plan = planner.plan(history, fixed, PaperCost(goal_y=LEFT), deadline=0.3)
+    assert plan.first_stage_samples == SCREENING_SAMPLES and len(human.prepared[0]) == N_ACTIONS
 
 
 def test_screening_is_exact_for_a_human_that_ignores_the_robot():

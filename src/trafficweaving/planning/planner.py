@@ -4,11 +4,13 @@ Stage 1 scores every candidate robot future with a few sampled human responses e
 re-scores the best ones with many samples; the best is executed. All counts are configurable.
 
 With a deadline (real-time mode) stage 2 runs anytime, in rounds of samples until the time is
-spent, and stage 1 screens: a CPU cannot sample 4096 candidates' own human futures in 0.3 s (it
-would score each against one sample, or only some), so the candidates that share their first
-free window's action share :data:`SCREENING_SAMPLES` human futures, sampled conditioned on the
-candidate that holds that action (8 conditionings instead of 4096); the finalists are then
-re-scored against their own futures, as in the paper. The human is any :class:`HumanModel` (the CVAE's is
+spent. Stage 1 samples every candidate's own human futures where at least two each fit in
+:data:`OWN_FUTURES_SHARE` of the deadline (int8 sampling on two cores); where they do not (a CPU
+sampling in bfloat16 or float32 would score each candidate against one sample, or only some of
+them), it screens: the candidates that share their first free window's action share
+:data:`SCREENING_SAMPLES` human futures, sampled conditioned on the candidate that holds that action
+(8 conditionings instead of 4096); the finalists are then re-scored against their own futures, as
+in the paper. The human is any :class:`HumanModel` (the CVAE's is
 :class:`~trafficweaving.model.predictor.HumanPredictor`).
 """
 
@@ -31,6 +33,10 @@ from .costs import Cost
 
 SCREENING_SAMPLES = 32
 """Real-time mode: human futures per window-1 action shared by stage 1's candidates."""
+OWN_FUTURES_SHARE = 0.4
+"""Real-time mode: the share of the deadline stage 1 may spend sampling every candidate's own human
+futures. Where at least two per candidate fit in it at the measured sampling rate, stage 1 samples
+them (the paper's stage 1 with fewer samples), else it screens (docs/planner.md, Real-time mode)."""
 
 
 @dataclass(frozen=True)
@@ -257,9 +263,11 @@ class Planner:
 
         Without ``deadline``, ``budget`` (default: the planner's) is spent in full, as in the
         paper: stage 1 scores every candidate against its own sampled human futures. With
-        ``deadline`` (s), the plan returns within it (once the screening is done): stage 1 screens
-        every candidate (:meth:`_screen`), then stage 2 samples the finalists' own human futures in
-        rounds until the time is spent (at most the budget's). ``keep_samples``: how many of the
+        ``deadline`` (s), the plan returns within it (once stage 1 is done): stage 1 samples each
+        candidate's own futures where two or more fit in :data:`OWN_FUTURES_SHARE` of the deadline at
+        the measured rate (at most the budget's), else it screens every candidate (:meth:`_screen`);
+        then stage 2 samples the finalists' own human futures in rounds until the time is spent (at
+        most the budget's). ``keep_samples``: how many of the
         chosen candidate's human futures the plan keeps. Bad arguments raise
         :class:`~trafficweaving.errors.InputError`: ``history`` must be finite with at least
         ``MIN_HISTORY`` steps, ``first_action`` an integer in ``0..N_ACTIONS-1``, ``deadline`` None
@@ -277,12 +285,15 @@ class Planner:
         timings["candidates"] = time.perf_counter() - clock
         count = len(candidates)
 
-        # stage 1: every candidate, screened (real time) or with n1 samples of its own each (paper)
+        # stage 1: every candidate with n1 samples of its own each (paper; real time: as many as fit) or screened
+        n1 = budget.first_stage_samples
         if deadline is not None:
+            n1 = min(n1, int(self._rate() * OWN_FUTURES_SHARE * deadline) // count)
+        screening = n1 < 2
+        if screening:
             first_cost, n1 = self._screen(history, candidates, robot, human_present, cost), SCREENING_SAMPLES
         else:
             self.human_model.prepare(history, candidates.states)
-            n1 = budget.first_stage_samples
             scores = self._scores(torch.arange(count, device=self.device), robot, n1, human_present, cost)[0]
             first_cost = risk_cost(scores, self.mode.risk)
         first_cost = first_cost + turning_back
@@ -291,7 +302,7 @@ class Planner:
         # stage 2: the finalists, n2 samples of their own each, in rounds while time allows (one at least)
         k = budget.finalists
         finalists = torch.topk(first_cost, k, largest=False).indices
-        if deadline is not None:
+        if screening:
             self.human_model.prepare(history, candidates.states[finalists.cpu().numpy()])
             prepared = torch.arange(k, device=self.device)
         else:
@@ -313,7 +324,7 @@ class Planner:
         index = int(finalists[best])
         human = torch.cat(kept, 0)[:keep_samples, best] if kept else torch.zeros((0, HORIZON, len(STATE_NAMES)))
         timings["second_stage"] = time.perf_counter() - clock - sum(timings.values())
-        futures = (N_ACTIONS if deadline is not None else count) * n1 + used * k
+        futures = (N_ACTIONS if screening else count) * n1 + used * k
         return Plan(
             actions=candidates.actions[index], index=index, robot=candidates.states[index], candidates=candidates,
             first_stage_cost=first_cost.cpu().numpy(), finalists=finalists.cpu().numpy(),
