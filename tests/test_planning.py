@@ -429,8 +429,11 @@ def test_screening_is_exact_for_a_human_that_ignores_the_robot():
     # every candidate's own, so the screened stage 1 costs what the paper's stage 1 costs
     planner, history, cost = Planner(ConstantVelocityHuman()), _history(), PaperCost(goal_y=LEFT)
     fixed = Action.of(0.0, "right").index
+    planner.rows_per_second = 1.0  # too slow for own futures in real time: it screens
     screened = planner.plan(history, fixed, cost, deadline=1.0)
+    assert screened.first_stage_samples == SCREENING_SAMPLES
     full = planner.plan(history, fixed, cost, budget=Budget(1, 32, 1))
+    assert full.first_stage_samples == 1 and full.futures == N_CANDIDATES + 32
     np.testing.assert_allclose(screened.first_stage_cost, full.first_stage_cost, rtol=1e-5, atol=1e-3)
     assert screened.index == full.index
 

@@ -289,7 +289,7 @@ class Planner:
         n1 = budget.first_stage_samples
         if deadline is not None:
             n1 = min(n1, int(self._rate() * OWN_FUTURES_SHARE * deadline) // count)
-        screening = n1 < 2
+        screening = deadline is not None and n1 < 2
         if screening:
             first_cost, n1 = self._screen(history, candidates, robot, human_present, cost), SCREENING_SAMPLES
         else:
