@@ -17,8 +17,8 @@ from trafficweaving.planning.candidates import (ACCELERATIONS, MOTIONS, N_ACTION
                                                 action_sequences, robot_candidates, rollout)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
-from trafficweaving.planning.planner import (MODES, OWN_FUTURES_SHARE, SCREENING_SAMPLES, Budget, Mode, Planner, example_history,
-                                             risk_cost, turn_backs)
+from trafficweaving.planning.planner import (MODES, OWN_FUTURES_SHARE, SCREENING_SAMPLES, SET_OUT_COST, Budget, Mode, Planner,
+                                             example_history, risk_cost, set_outs, turn_backs)
 from trafficweaving.planning.steering import optimal_time, steer, steering_cost
 from trafficweaving.scenario import DT, HORIZON, LANE_CENTRE_Y
 from trafficweaving.sim.world import World
@@ -353,6 +353,32 @@ def test_turning_back_from_a_lane_change_under_way_costs_and_setting_out_does_no
     assert turn_backs(sequences, "left").tolist() == [0, 2, 0, 1]
 
 
+def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_way_does_not():
+    """HISTORY_TOY's cars are side by side, the robot in the right lane; the goal is the left lane."""
+    keep, cost, mode = Action.of(0.0, "right").index, GoalToyCost(LEFT), Mode(set_out_gap=5.0)
+    plain = Planner(ToyHuman(), seed=0).plan(HISTORY_TOY, keep, cost)
+    beside = Planner(ToyHuman(), seed=0, mode=mode).plan(HISTORY_TOY, keep, cost)
+    starts = set_outs(plain.candidates.actions, "left")
+    assert starts.sum() == N_CANDIDATES // 2
+    np.testing.assert_allclose(beside.first_stage_cost - plain.first_stage_cost, SET_OUT_COST * starts, atol=0.1)
+    assert not starts[beside.index]
+    apart = HISTORY_TOY.copy()
+    apart[:, 1, 0] -= 5.0  # the human 5 m behind: room to set out
+    np.testing.assert_array_equal(Planner(ToyHuman(), seed=0, mode=mode).plan(apart, keep, cost).first_stage_cost,
+                                  Planner(ToyHuman(), seed=0).plan(apart, keep, cost).first_stage_cost)
+    in_lane = HISTORY_TOY.copy()
+    in_lane[:, 1] = HISTORY_TOY[:, 0] + [3.0, 0, 0, 0, 0, 0]  # 3 m ahead in the robot's lane: setting out moves away
+    np.testing.assert_array_equal(Planner(ToyHuman(), seed=0, mode=mode).plan(in_lane, keep, cost).first_stage_cost,
+                                  Planner(ToyHuman(), seed=0).plan(in_lane, keep, cost).first_stage_cost)
+    going = Action.of(0.0, "left").index  # window 0 already sets out: nothing to start
+    np.testing.assert_array_equal(Planner(ToyHuman(), seed=0, mode=mode).plan(HISTORY_TOY, going, cost).first_stage_cost,
+                                  Planner(ToyHuman(), seed=0).plan(HISTORY_TOY, going, cost).first_stage_cost)
+    lanes = lambda *names: [Action.of(0.0, n).index for n in names]  # noqa: E731
+    sequences = np.array([lanes("right", "left", "left", "left", "left"), lanes("left", "left", "left", "left", "left"),
+                          lanes("right", "right", "left", "left", "left"), lanes("left", "right", "left", "right", "left")])
+    assert set_outs(sequences, "left").tolist() == [True, False, False, False]
+
+
 def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():
     scores = torch.tensor([[1.0, 10.0], [2.0, 20.0], [3.0, 30.0], [4.0, 40.0]])
     assert risk_cost(scores, 1.0).tolist() == [2.5, 25.0] and risk_cost(scores, 0.5).tolist() == [3.5, 35.0]
@@ -362,7 +388,8 @@ def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():
     cautious = Planner(ToyHuman(), seed=0, mode=Mode(risk=0.25)).plan(HISTORY_TOY, 0, toy_cost, budget=budget)
     assert np.all(cautious.first_stage_cost >= plain.first_stage_cost - 1e-6)
     assert (cautious.first_stage_cost > plain.first_stage_cost + 1.0).mean() > 0.9
-    for bad in (dict(risk=0.0), dict(risk=1.5), dict(turn_back_cost=-1.0), dict(turn_back_cost=float("inf"))):
+    for bad in (dict(risk=0.0), dict(risk=1.5), dict(turn_back_cost=-1.0), dict(turn_back_cost=float("inf")),
+                dict(set_out_gap=-5.0)):
         with pytest.raises(InputError, match="a planner mode needs"):
             Mode(**bad)
     with pytest.raises(InputError, match="mode must be a planner Mode"):

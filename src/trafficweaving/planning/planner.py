@@ -26,7 +26,7 @@ import torch
 from .. import validate
 from ..dynamics import future_states
 from ..errors import InputError
-from ..scenario import DT, HORIZON, LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
+from ..scenario import CAR_WIDTH, DT, HORIZON, LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
 from .candidates import MOTIONS, N_ACTIONS, N_CANDIDATES, WINDOWS, Candidates, Motion, robot_candidates
 from .costs import Cost
 
@@ -49,18 +49,24 @@ class Mode:
     unless turning back is better by more than that; setting out, and turning back from a first
     probe, are free (0: the paper's).
     ``risk``: the share α of a candidate's sampled human futures whose costs judge it, the worst
-    ones (CVaR_α, :func:`risk_cost`; 1: the expected cost, the paper's)."""
+    ones (CVaR_α, :func:`risk_cost`; 1: the expected cost, the paper's).
+    ``set_out_gap``: while the human is beside the robot (less than this many m ahead or behind,
+    and not in the robot's lane: their centres a car's width or more apart sideways), a candidate
+    that sets out for the goal lane in window 1 (:func:`set_outs`) costs :data:`SET_OUT_COST`: the
+    robot does not start a lane change beside the human (0: it may, the paper's)."""
 
     motion: Motion = MOTIONS["paper"]
     turn_back_cost: float = 0.0
     risk: float = 1.0
     commit_offset: float = 0.0
+    set_out_gap: float = 0.0
 
     def __post_init__(self):
-        finite = all(v >= 0 and np.isfinite(v) for v in (self.turn_back_cost, self.commit_offset))
-        if not finite or not 0 < self.risk <= 1:
-            raise InputError(f"a planner mode needs turn_back_cost >= 0, commit_offset >= 0 and 0 < risk <= 1, got "
-                             f"{self.turn_back_cost}, {self.commit_offset}, {self.risk}")
+        lengths = (self.turn_back_cost, self.commit_offset, self.set_out_gap)
+        if not all(v >= 0 and np.isfinite(v) for v in lengths) or not 0 < self.risk <= 1:
+            raise InputError(f"a planner mode needs turn_back_cost, commit_offset and set_out_gap finite and >= 0 "
+                             f"and 0 < risk <= 1, got {self.turn_back_cost}, {self.commit_offset}, "
+                             f"{self.set_out_gap}, {self.risk}")
 
 
 TURN_BACK_COST = 300.0
@@ -68,15 +74,23 @@ TURN_BACK_COST = 300.0
 :class:`~.costs.PaperCost`: about 0.6 m of lane offset held over the horizon)."""
 COMMIT_OFFSET = 1.0
 """How far (m) from the other lane's centre the decisive modes' robot is committed to its lane change."""
+SET_OUT_GAP = 5.0
+"""The decisive modes' smallest longitudinal distance (m) between the cars for setting out: a car
+length (4.22 m) and a little more, so that neither car overlaps the other while the robot moves across."""
+SET_OUT_COST = 100_000.0
+"""Cost of setting out closer than a mode's ``set_out_gap``: more than a candidate's sampled collision
+costs can add up to (1000 · 9.25 at each of 15 steps discounted by 0.9: about 66,000), so it acts as a rule."""
 MODES = {
     "paper": Mode(),
-    "decisive": Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET),
+    "decisive": Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP),
     "comfort": Mode(MOTIONS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET),
-    "cautious": Mode(MOTIONS["settled"], TURN_BACK_COST, 0.2, COMMIT_OFFSET),
+    "cautious": Mode(MOTIONS["settled"], TURN_BACK_COST, 0.2, COMMIT_OFFSET, SET_OUT_GAP),
 }
 """The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once under way,
-settles on the lane centre); ``comfort`` (decisive, within nuPlan's comfort limits); ``cautious`` (decisive, judged
-by the worst 20 % of its sampled futures: CVaR_0.2)."""
+does not start one beside the human, settles on the lane centre); ``comfort`` (it keeps to a lane
+change once under way, within nuPlan's comfort limits; its slow lane changes miss the cutoff too
+often when it also waits to be clear of the human, docs/closed_loop.md); ``cautious`` (decisive,
+judged by the worst 20 % of its sampled futures: CVaR_0.2)."""
 
 
 def risk_cost(scores: torch.Tensor, risk: float) -> torch.Tensor:
@@ -93,6 +107,14 @@ def turn_backs(actions: np.ndarray, goal: str) -> np.ndarray:
     lanes = np.asarray(actions) % len(LANES)
     target = LANES.index(goal)
     return ((lanes[:, :-1] == target) & (lanes[:, 1:] != target)).sum(1)
+
+
+def set_outs(actions: np.ndarray, goal: str) -> np.ndarray:
+    """Per action sequence of ``actions [C, W]``, whether window 1 targets the ``goal`` lane while
+    window 0 (the one being executed) does not ``[C]``: the plan starts a lane change now."""
+    lanes = np.asarray(actions) % len(LANES)
+    target = LANES.index(goal)
+    return (lanes[:, 0] != target) & (lanes[:, 1] == target)
 
 
 @runtime_checkable
@@ -211,20 +233,23 @@ class Planner:
         human_present = torch.as_tensor(history[-1, 1], dtype=self.dtype, device=self.device)
         return history, candidates, robot, human_present
 
-    def _turning_back(self, candidates: Candidates, history: np.ndarray, cost: Cost) -> torch.Tensor:
-        """The mode's turn-back cost of each candidate ``[C]`` (:func:`turn_backs` from the goal lane
-        of ``cost``, its ``goal_y``; none for a cost without one or before the robot, at the last
-        step of ``history``, is ``commit_offset`` from the other lane's centre)."""
+    def _rules(self, candidates: Candidates, history: np.ndarray, cost: Cost) -> torch.Tensor:
+        """The mode's rule costs of each candidate ``[C]`` towards the goal lane of ``cost`` (its
+        ``goal_y``; none for a cost without one): turning back (:func:`turn_backs`, once the robot,
+        at the last step of ``history``, is ``commit_offset`` from the other lane's centre) and
+        setting out beside the human (:func:`set_outs`, while the human is less than ``set_out_gap``
+        ahead or behind and not in the robot's lane)."""
         goal_y = getattr(cost, "goal_y", None)
-        zero = torch.zeros(len(candidates), dtype=self.dtype, device=self.device)
-        if goal_y is None or self.mode.turn_back_cost == 0:
-            return zero
-        goal = str(lane_of(np.array([goal_y]))[0])
-        other = next(lane for lane in LANES if lane != goal)
-        if abs(history[-1, 0, 1] - LANE_CENTRE_Y[other]) < self.mode.commit_offset:
-            return zero
-        counts = torch.as_tensor(turn_backs(candidates.actions, goal), dtype=self.dtype, device=self.device)
-        return self.mode.turn_back_cost * counts
+        rules = np.zeros(len(candidates))
+        if goal_y is not None:
+            goal = str(lane_of(np.array([goal_y]))[0])
+            other = next(lane for lane in LANES if lane != goal)
+            robot, human = history[-1]
+            if abs(robot[1] - LANE_CENTRE_Y[other]) >= self.mode.commit_offset:
+                rules += self.mode.turn_back_cost * turn_backs(candidates.actions, goal)
+            if abs(robot[0] - human[0]) < self.mode.set_out_gap and abs(robot[1] - human[1]) >= CAR_WIDTH:
+                rules += SET_OUT_COST * set_outs(candidates.actions, goal)
+        return torch.as_tensor(rules, dtype=self.dtype, device=self.device)
 
     def _sample(self, prepared: torch.Tensor, n: int, human_present: torch.Tensor) -> torch.Tensor:
         """``n`` sampled human futures ``[n, k, 15, 6]`` for the prepared robot futures ``prepared [k]``
@@ -281,7 +306,7 @@ class Planner:
         left = (lambda: deadline - (time.perf_counter() - clock)) if deadline is not None else (lambda: np.inf)  # noqa: E731
         timings = {}
         history, candidates, robot, human_present = self._situation(history, first_action)
-        turning_back = self._turning_back(candidates, history, cost)
+        rules = self._rules(candidates, history, cost)
         timings["candidates"] = time.perf_counter() - clock
         count = len(candidates)
 
@@ -296,7 +321,7 @@ class Planner:
             self.human_model.prepare(history, candidates.states)
             scores = self._scores(torch.arange(count, device=self.device), robot, n1, human_present, cost)[0]
             first_cost = risk_cost(scores, self.mode.risk)
-        first_cost = first_cost + turning_back
+        first_cost = first_cost + rules
         timings["first_stage"] = time.perf_counter() - clock - sum(timings.values())
 
         # stage 2: the finalists, n2 samples of their own each, in rounds while time allows (one at least)
@@ -318,7 +343,7 @@ class Planner:
             rounds.append(scores)
             used += n
             kept.append(human)
-        second_cost = (risk_cost(torch.cat(rounds), self.mode.risk) + turning_back[finalists] if used
+        second_cost = (risk_cost(torch.cat(rounds), self.mode.risk) + rules[finalists] if used
                        else first_cost[finalists])
         best = int(torch.argmin(second_cost))
         index = int(finalists[best])
@@ -334,7 +359,7 @@ class Planner:
 
     @torch.no_grad()
     def score(self, history: np.ndarray, first_action: int, cost: Cost, indices, samples: int) -> tuple[np.ndarray, np.ndarray]:
-        """The mode's costs ``[k]`` (:class:`Mode`: risk over the futures, turning back) of candidates
+        """The mode's costs ``[k]`` (:class:`Mode`: risk over the futures, its rules) of candidates
         ``indices [k]`` (of :func:`robot_candidates` with window 0 fixed to ``first_action``) from
         ``samples`` fresh human futures each, and those
         futures ``[samples, k, 15, 6]`` (for re-scoring a choice and for figures). Arguments are
@@ -347,7 +372,7 @@ class Planner:
         chosen = torch.as_tensor(indices, device=self.device)
         scores, human = self._scores(torch.arange(len(chosen), device=self.device), robot[chosen], samples,
                                      human_present, cost)
-        total = risk_cost(scores, self.mode.risk) + self._turning_back(candidates, history, cost)[chosen]
+        total = risk_cost(scores, self.mode.risk) + self._rules(candidates, history, cost)[chosen]
         return total.cpu().double().numpy(), human.cpu().double().numpy()
 
     def _rate(self) -> float:

@@ -193,9 +193,10 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
       model ``model`` (``default``, a checkpoint path or ``authors:PATH``, as
       :func:`~trafficweaving.model.checkpoint.load_model`; the unimodal ``lstm`` variant is just
       ``model=path/to/lstm.pt``) through :class:`HumanPredictor` (with ``precision``), in the
-      decisive mode (:data:`~trafficweaving.planning.planner.MODES`: settled steering, turn-back cost);
+      decisive mode (:data:`~trafficweaving.planning.planner.MODES`: settled steering, turn-back cost,
+      no setting out beside the human);
     * ``planner-paper``: the same in the paper's mode exactly;
-    * ``planner-comfort``: decisive, with candidates that keep to nuPlan's comfort limits;
+    * ``planner-comfort``: decisive but for the set-out rule, with candidates that keep to nuPlan's comfort limits;
     * ``planner-cautious``: decisive, judging its candidates by CVaR (the worst 20 % of the futures);
     * ``planner-cv``: the decisive planner against :class:`ConstantVelocityHuman` (``model`` unused);
     * ``rules``: :class:`RuleBasedRobot` (``model``, ``deadline``, ``budget`` unused).
