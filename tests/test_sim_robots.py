@@ -129,7 +129,7 @@ def test_planner_robots_swap_lanes_without_collision_and_set_out_only_with_room(
     assert len(robot.latencies) == len(robot.plans) >= 15
     states = world.states[0]
     set_out = np.argmax(np.abs(states[me, :, 3]) > 0.2)  # the first step the robot moves sideways
-    planned = set_out - STEPS_PER_WINDOW  # the plan that chose it began a window earlier, at most
+    planned = max(set_out - STEPS_PER_WINDOW, 0)  # the plan that chose it began a window earlier, at most
     gap = np.abs(states[me, planned:set_out, 0] - states[1 - me, planned:set_out, 0])
     assert 0 < set_out < swap[0] and gap.min() >= SET_OUT_GAP - 1.0  # 0.3 s at up to 3 m/s apart since the plan
 

@@ -75,11 +75,13 @@ TURN_BACK_COST = 300.0
 COMMIT_OFFSET = 1.0
 """How far (m) from the other lane's centre the decisive modes' robot is committed to its lane change."""
 SET_OUT_GAP = 5.0
-"""The decisive modes' smallest longitudinal distance (m) between the cars for setting out: a car
-length (4.22 m) and a little more, so that neither car overlaps the other while the robot moves across."""
+"""The decisive modes' smallest longitudinal distance (m, centre to centre) between the cars for
+setting out: a car length (:data:`~trafficweaving.scenario.CAR_LENGTH`, 4.22 m) and a little more,
+so that the cars do not overlap lengthwise when the robot starts across."""
 SET_OUT_COST = 100_000.0
-"""Cost of setting out closer than a mode's ``set_out_gap``: more than a candidate's sampled collision
-costs can add up to (1000 · 9.25 at each of 15 steps discounted by 0.9: about 66,000), so it acts as a rule."""
+"""Cost of setting out with the human closer than a mode's ``set_out_gap``: more than a sampled
+future's collision costs can add up to (1000 · 9.25 at each of 15 steps discounted by 0.9: about
+66,000), so it acts as a rule."""
 MODES = {
     "paper": Mode(),
     "decisive": Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP),
@@ -101,20 +103,23 @@ def risk_cost(scores: torch.Tensor, risk: float) -> torch.Tensor:
     return torch.topk(scores, max(1, int(np.ceil(risk * scores.shape[0]))), dim=0).values.mean(0)
 
 
+def _targets(actions: np.ndarray, goal: str) -> np.ndarray:
+    """Which windows of the action sequences ``actions [C, W]`` steer to the ``goal`` lane ``[C, W]``."""
+    return np.asarray(actions) % len(LANES) == LANES.index(goal)
+
+
 def turn_backs(actions: np.ndarray, goal: str) -> np.ndarray:
     """Per action sequence of ``actions [C, W]``, the windows that leave the ``goal`` lane after a
     window that targeted it ``[C]``."""
-    lanes = np.asarray(actions) % len(LANES)
-    target = LANES.index(goal)
-    return ((lanes[:, :-1] == target) & (lanes[:, 1:] != target)).sum(1)
+    targets = _targets(actions, goal)
+    return (targets[:, :-1] & ~targets[:, 1:]).sum(1)
 
 
 def set_outs(actions: np.ndarray, goal: str) -> np.ndarray:
     """Per action sequence of ``actions [C, W]``, whether window 1 targets the ``goal`` lane while
     window 0 (the one being executed) does not ``[C]``: the plan starts a lane change now."""
-    lanes = np.asarray(actions) % len(LANES)
-    target = LANES.index(goal)
-    return (lanes[:, 0] != target) & (lanes[:, 1] == target)
+    targets = _targets(actions, goal)
+    return ~targets[:, 0] & targets[:, 1]
 
 
 @runtime_checkable
