@@ -362,14 +362,23 @@ def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_w
     assert starts.sum() == N_CANDIDATES // 2
     np.testing.assert_allclose(beside.first_stage_cost - plain.first_stage_cost, SET_OUT_COST * starts, atol=0.1)
     assert not starts[beside.index]
+    def costs_of_the_rule(history):
+        return (Planner(ToyHuman(), seed=0, mode=mode).plan(history, keep, cost).first_stage_cost
+                - Planner(ToyHuman(), seed=0).plan(history, keep, cost).first_stage_cost)
+
     apart = HISTORY_TOY.copy()
-    apart[:, 1, 0] -= 5.0  # the human 5 m behind: room to set out
-    np.testing.assert_array_equal(Planner(ToyHuman(), seed=0, mode=mode).plan(apart, keep, cost).first_stage_cost,
-                                  Planner(ToyHuman(), seed=0).plan(apart, keep, cost).first_stage_cost)
+    apart[:, 1, 0] -= 5.0  # the human 5 m behind at the same speed: room to set out
+    np.testing.assert_array_equal(costs_of_the_rule(apart), 0.0)
+    pulling_away = HISTORY_TOY.copy()
+    pulling_away[:, 1, 0] -= 2.0  # 2 m behind but 6 m/s slower: 5.6 m apart by the time the robot is across
+    pulling_away[:, 1, 2] -= 6.0
+    np.testing.assert_array_equal(costs_of_the_rule(pulling_away), 0.0)
+    closing = apart.copy()
+    closing[:, 1, 2] += 3.0  # 5 m behind but 3 m/s faster: 3.2 m behind 0.6 s from now
+    np.testing.assert_allclose(costs_of_the_rule(closing), SET_OUT_COST * starts, atol=0.1)
     in_lane = HISTORY_TOY.copy()
     in_lane[:, 1] = HISTORY_TOY[:, 0] + [3.0, 0, 0, 0, 0, 0]  # 3 m ahead in the robot's lane: setting out moves away
-    np.testing.assert_array_equal(Planner(ToyHuman(), seed=0, mode=mode).plan(in_lane, keep, cost).first_stage_cost,
-                                  Planner(ToyHuman(), seed=0).plan(in_lane, keep, cost).first_stage_cost)
+    np.testing.assert_array_equal(costs_of_the_rule(in_lane), 0.0)
     going = Action.of(0.0, "left").index  # window 0 already sets out: nothing to start
     np.testing.assert_array_equal(Planner(ToyHuman(), seed=0, mode=mode).plan(HISTORY_TOY, going, cost).first_stage_cost,
                                   Planner(ToyHuman(), seed=0).plan(HISTORY_TOY, going, cost).first_stage_cost)

@@ -13,8 +13,8 @@ from trafficweaving.model.predictor import HumanPredictor
 from trafficweaving.planning.candidates import STEPS_PER_WINDOW, Action, rollout
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import SET_OUT_GAP, Budget, Planner, example_history
-from trafficweaving.scenario import (COLLISION_DY, DT, LANE_CENTRE_Y, SWAP_THRESHOLD_Y, VALIDITY_REASONS, check_validity,
-                                     lane_of, study_initial_conditions)
+from trafficweaving.scenario import (CAR_WIDTH, COLLISION_DY, DT, LANE_CENTRE_Y, LANE_DIVIDER_Y, SWAP_THRESHOLD_Y,
+                                     VALIDITY_REASONS, check_validity, lane_of, study_initial_conditions)
 from trafficweaving.sim.robots import ROBOT_SPECS, RuleBasedRobot, RuleParameters, robot_agent
 from trafficweaving.sim.world import World, run_episodes
 
@@ -119,8 +119,8 @@ def test_the_rule_based_robot_swaps_lanes_in_every_study_start(me):
 
 @pytest.mark.parametrize("spec, start, me", [("planner", 6, 0), ("planner", 12, 1), ("planner-cv", 0, 1)])
 def test_planner_robots_swap_lanes_without_collision_and_set_out_only_with_room(spec, start, me):
-    """The scripted human keeps to its lane, so the robot must get SET_OUT_GAP ahead or behind it
-    before it sets out (the human starts beside it in all three: 0 or 2 m apart)."""
+    """The scripted human keeps to its lane, so the robot must be SET_OUT_GAP ahead or behind it
+    while it moves across (the human starts beside it in all three: 0 or 2 m apart)."""
     starts = STARTS[[start]] if me == 0 else STARTS[[start], ::-1]
     robot = robot_agent(spec, budget=Budget(2, 8, 32))
     world = run_episodes(starts, [robot, ScriptedHuman()][:: 1 if me == 0 else -1], np.random.default_rng(start))
@@ -128,10 +128,9 @@ def test_planner_robots_swap_lanes_without_collision_and_set_out_only_with_room(
     assert reasons == ["valid"] and min_dx[0] > 6.0
     assert len(robot.latencies) == len(robot.plans) >= 15
     states = world.states[0]
-    set_out = np.argmax(np.abs(states[me, :, 3]) > 0.2)  # the first step the robot moves sideways
-    planned = max(set_out - STEPS_PER_WINDOW, 0)  # the plan that chose it began a window earlier, at most
-    gap = np.abs(states[me, planned:set_out, 0] - states[1 - me, planned:set_out, 0])
-    assert 0 < set_out < swap[0] and gap.min() >= SET_OUT_GAP - 1.0  # 0.3 s at up to 3 m/s apart since the plan
+    crossing = np.abs(states[me, :, 1] - LANE_DIVIDER_Y) < CAR_WIDTH / 2  # the robot's body over the divider
+    assert 0 < np.argmax(crossing) < swap[0]
+    assert np.abs(states[me, crossing, 0] - states[1 - me, crossing, 0]).min() >= SET_OUT_GAP
 
 
 def test_the_planning_robots_drive_in_their_modes():

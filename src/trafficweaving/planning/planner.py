@@ -50,10 +50,11 @@ class Mode:
     probe, are free (0: the paper's).
     ``risk``: the share α of a candidate's sampled human futures whose costs judge it, the worst
     ones (CVaR_α, :func:`risk_cost`; 1: the expected cost, the paper's).
-    ``set_out_gap``: while the human is beside the robot (less than this many m ahead or behind,
-    and not in the robot's lane: their centres a car's width or more apart sideways), a candidate
-    that sets out for the goal lane in window 1 (:func:`set_outs`) costs :data:`SET_OUT_COST`: the
-    robot does not start a lane change beside the human (0: it may, the paper's)."""
+    ``set_out_gap``: while the human would be beside the robot as it moves across (less than this
+    many m ahead or behind at any of :data:`SET_OUT_TIMES`, both keeping their speeds; and not in
+    the robot's lane: their centres a car's width or more apart sideways), a candidate that sets
+    out for the goal lane in window 1 (:func:`set_outs`) costs :data:`SET_OUT_COST`: the robot does
+    not start a lane change beside the human (0: it may, the paper's)."""
 
     motion: Motion = MOTIONS["paper"]
     turn_back_cost: float = 0.0
@@ -77,7 +78,11 @@ COMMIT_OFFSET = 1.0
 SET_OUT_GAP = 5.0
 """The decisive modes' smallest longitudinal distance (m, centre to centre) between the cars for
 setting out: a car length (:data:`~trafficweaving.scenario.CAR_LENGTH`, 4.22 m) and a little more,
-so that the cars do not overlap lengthwise when the robot starts across."""
+so that the cars do not overlap lengthwise while the robot moves across."""
+SET_OUT_TIMES = np.linspace(0.6, 2.0, 15)
+"""When (s after the plan) the set-out rule checks the gap, at both cars' present speeds: a lane
+change set out in window 1 (0.3 s) takes the robot's side across the divider from about 0.3 s in
+and its body clear of it by about 1.7 s in (the settled motion, 2.0 s from rest)."""
 SET_OUT_COST = 100_000.0
 """Cost of setting out with the human closer than a mode's ``set_out_gap``: more than a sampled
 future's collision costs can add up to (1000 · 9.25 at each of 15 steps discounted by 0.9: about
@@ -242,8 +247,8 @@ class Planner:
         """The mode's rule costs of each candidate ``[C]`` towards the goal lane of ``cost`` (its
         ``goal_y``; none for a cost without one): turning back (:func:`turn_backs`, once the robot,
         at the last step of ``history``, is ``commit_offset`` from the other lane's centre) and
-        setting out beside the human (:func:`set_outs`, while the human is less than ``set_out_gap``
-        ahead or behind and not in the robot's lane)."""
+        setting out beside the human (:func:`set_outs`, while the human would be less than
+        ``set_out_gap`` ahead or behind as the robot moves across, and is not in the robot's lane)."""
         goal_y = getattr(cost, "goal_y", None)
         rules = np.zeros(len(candidates))
         if goal_y is not None:
@@ -252,7 +257,8 @@ class Planner:
             robot, human = history[-1]
             if abs(robot[1] - LANE_CENTRE_Y[other]) >= self.mode.commit_offset:
                 rules += self.mode.turn_back_cost * turn_backs(candidates.actions, goal)
-            if abs(robot[0] - human[0]) < self.mode.set_out_gap and abs(robot[1] - human[1]) >= CAR_WIDTH:
+            crossing_gaps = robot[0] - human[0] + (robot[2] - human[2]) * SET_OUT_TIMES
+            if np.abs(crossing_gaps).min() < self.mode.set_out_gap and abs(robot[1] - human[1]) >= CAR_WIDTH:
                 rules += SET_OUT_COST * set_outs(candidates.actions, goal)
         return torch.as_tensor(rules, dtype=self.dtype, device=self.device)
 
