@@ -362,6 +362,7 @@ def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_w
     assert starts.sum() == N_CANDIDATES // 2
     np.testing.assert_allclose(beside.first_stage_cost - plain.first_stage_cost, SET_OUT_COST * starts, atol=0.1)
     assert not starts[beside.index]
+
     def costs_of_the_rule(history):
         return (Planner(ToyHuman(), seed=0, mode=mode).plan(history, keep, cost).first_stage_cost
                 - Planner(ToyHuman(), seed=0).plan(history, keep, cost).first_stage_cost)

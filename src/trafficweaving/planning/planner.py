@@ -81,8 +81,9 @@ setting out: a car length (:data:`~trafficweaving.scenario.CAR_LENGTH`, 4.22 m) 
 so that the cars do not overlap lengthwise while the robot moves across."""
 SET_OUT_TIMES = np.linspace(0.6, 2.0, 15)
 """When (s after the plan) the set-out rule checks the gap, at both cars' present speeds: a lane
-change set out in window 1 (0.3 s) takes the robot's side across the divider from about 0.3 s in
-and its body clear of it by about 1.7 s in (the settled motion, 2.0 s from rest)."""
+change of the settled motion set out in window 1 (0.3 s from now, at rest sideways) brings the
+robot's side over the divider about 1.1 s from now and its body clear of it about 1.55 s from now;
+the times cover that with about half a second to spare either side."""
 SET_OUT_COST = 100_000.0
 """Cost of setting out with the human closer than a mode's ``set_out_gap``: more than a sampled
 future's collision costs can add up to (1000 · 9.25 at each of 15 steps discounted by 0.9: about
