@@ -389,6 +389,21 @@ def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_w
     assert set_outs(sequences, "left").tolist() == [True, False, False, False]
 
 
+def test_the_set_out_rule_watches_the_gap_while_each_modes_lane_change_crosses_the_divider():
+    """With half a second or more to spare either side, for the lane change from rest set out in
+    window 1 (0.3 s from now)."""
+    from trafficweaving.scenario import CAR_WIDTH, LANE_DIVIDER_Y
+
+    times = np.arange(1, 61) * DT
+    for name, mode in MODES.items():
+        if mode.set_out_gap:
+            y = steer(np.array([RIGHT, 0.0, 0.0]), np.array(LEFT), times, mode.motion.steering_weight,
+                      mode.motion.min_steering_time)[:, 0]
+            over = np.abs(y - LANE_DIVIDER_Y) < CAR_WIDTH / 2  # the robot's body over the divider
+            first, last = 0.3 + times[over][[0, -1]]
+            assert mode.set_out_times[0] <= first - 0.45 and mode.set_out_times[-1] >= last + 0.45, name
+
+
 def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():
     scores = torch.tensor([[1.0, 10.0], [2.0, 20.0], [3.0, 30.0], [4.0, 40.0]])
     assert risk_cost(scores, 1.0).tolist() == [2.5, 25.0] and risk_cost(scores, 0.5).tolist() == [3.5, 35.0]
@@ -399,7 +414,7 @@ def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():
     assert np.all(cautious.first_stage_cost >= plain.first_stage_cost - 1e-6)
     assert (cautious.first_stage_cost > plain.first_stage_cost + 1.0).mean() > 0.9
     for bad in (dict(risk=0.0), dict(risk=1.5), dict(turn_back_cost=-1.0), dict(turn_back_cost=float("inf")),
-                dict(set_out_gap=-5.0)):
+                dict(set_out_gap=-5.0), dict(set_out_until=0.5)):
         with pytest.raises(InputError, match="a planner mode needs"):
             Mode(**bad)
     with pytest.raises(InputError, match="mode must be a planner Mode"):
@@ -518,11 +533,18 @@ def test_settled_steering_comes_to_rest_on_the_lane_centre_where_the_papers_keep
     assert float(optimal_time(np.array([LEFT + 0.01, 0.0, 0.0]), np.array(LEFT), min_time=SETTLING_TIME)) >= SETTLING_TIME
 
 
-def test_comfort_candidates_keep_to_the_comfort_limits_from_every_state_they_reach_and_the_paper_ones_do_not():
+def test_comfort_candidates_that_do_not_turn_back_keep_to_the_comfort_limits_from_every_state_they_reach():
+    """From the right lane towards the left one; a lane change turned back may break the total
+    jerk (the comfort modes' turn-back cost keeps that rare: none in the closed loop,
+    docs/closed_loop.md), the paper's candidates break the limits in most sequences."""
     from trafficweaving.sim.metrics import comfort_violations  # the closed loop's own definition
 
-    def violating(present, first, motion):  # per candidate: a step over the limits, the present included
-        states = robot_candidates(present, first, motion).states
+    def onward(present, first, motion):  # per candidate not turning back: a step over the limits (the present included)
+        candidates = robot_candidates(present, first, motion)
+        keeps_on = turn_backs(candidates.actions, "left") == 0
+        if present[3] > 0.2 and Action(first).lane == "right":  # under way to the left: window 0 turns back
+            keeps_on[:] = False
+        states = candidates.states[keeps_on]
         acc = np.concatenate([np.broadcast_to(present[4:6], (len(states), 1, 2)), states[..., 4:6]], 1)
         return np.array([comfort_violations(a).any() for a in acc]), states
 
@@ -530,13 +552,18 @@ def test_comfort_candidates_keep_to_the_comfort_limits_from_every_state_they_rea
     rng = np.random.default_rng(0)
     presents = [start]
     for first in (0, 1, 3, 6):  # states after a window and after two, as the MPC executes them
-        _, states = violating(start, first, MOTIONS["comfort"])
+        _, states = onward(start, first, MOTIONS["comfort"])
         picks = rng.choice(len(states), 3, replace=False)
         presents += [states[i, 2] for i in picks] + [states[i, 5] for i in picks]
+    assert max(p[3] for p in presents) > 0.5  # some of them under way
+    checked = 0
     for present in presents:
         for first in (0, 3, N_ACTIONS - 1):
-            assert not violating(present, first, MOTIONS["comfort"])[0].any()
-    assert violating(start, 0, MOTIONS["paper"])[0].mean() > 0.5
+            violations, _ = onward(present, first, MOTIONS["comfort"])
+            assert not violations.any()
+            checked += len(violations)
+    assert checked > 5 * N_CANDIDATES  # the monotone lane choices of every present (about a tenth of all)
+    assert onward(start, 0, MOTIONS["paper"])[0].mean() > 0.5
     comfort = robot_candidates(presents[-1], 0, MOTIONS["comfort"]).states
     np.testing.assert_allclose(np.diff(comfort[..., 2], axis=1), DT * comfort[:, :-1, 4], atol=1e-12)  # Euler velocity
 

@@ -51,23 +51,32 @@ class Mode:
     ``risk``: the share α of a candidate's sampled human futures whose costs judge it, the worst
     ones (CVaR_α, :func:`risk_cost`; 1: the expected cost, the paper's).
     ``set_out_gap``: while the human would be beside the robot as it moves across (less than this
-    many m ahead or behind at any of :data:`SET_OUT_TIMES`, both keeping their speeds; and not in
-    the robot's lane: their centres a car's width or more apart sideways), a candidate that sets
-    out for the goal lane in window 1 (:func:`set_outs`) costs :data:`SET_OUT_COST`: the robot does
-    not start a lane change beside the human (0: it may, the paper's)."""
+    many m ahead or behind at any of 15 times from :data:`SET_OUT_FROM` to ``set_out_until`` s from
+    now, both keeping their speeds; and not in the robot's lane: their centres a car's width or
+    more apart sideways), a candidate that sets out for the goal lane in window 1
+    (:func:`set_outs`) costs :data:`SET_OUT_COST`: the robot does not start a lane change beside
+    the human (0: it may, the paper's). ``set_out_until``: about half a second after the
+    ``motion``'s lane change, set out in window 1, takes the robot's body clear of the divider."""
 
     motion: Motion = MOTIONS["paper"]
     turn_back_cost: float = 0.0
     risk: float = 1.0
     commit_offset: float = 0.0
     set_out_gap: float = 0.0
+    set_out_until: float = 2.0
 
     def __post_init__(self):
         lengths = (self.turn_back_cost, self.commit_offset, self.set_out_gap)
-        if not all(v >= 0 and np.isfinite(v) for v in lengths) or not 0 < self.risk <= 1:
-            raise InputError(f"a planner mode needs turn_back_cost, commit_offset and set_out_gap finite and >= 0 "
-                             f"and 0 < risk <= 1, got {self.turn_back_cost}, {self.commit_offset}, "
-                             f"{self.set_out_gap}, {self.risk}")
+        if (not all(v >= 0 and np.isfinite(v) for v in lengths) or not 0 < self.risk <= 1
+                or not SET_OUT_FROM < self.set_out_until < np.inf):
+            raise InputError(f"a planner mode needs turn_back_cost, commit_offset and set_out_gap finite and >= 0, "
+                             f"0 < risk <= 1 and set_out_until finite and > {SET_OUT_FROM}, got {self.turn_back_cost}, "
+                             f"{self.commit_offset}, {self.set_out_gap}, {self.risk}, {self.set_out_until}")
+
+    @property
+    def set_out_times(self) -> np.ndarray:
+        """When (s from now) the set-out rule checks the gap ``[15]``."""
+        return np.linspace(SET_OUT_FROM, self.set_out_until, 15)
 
 
 TURN_BACK_COST = 300.0
@@ -79,11 +88,11 @@ SET_OUT_GAP = 5.0
 """The decisive modes' smallest longitudinal distance (m, centre to centre) between the cars for
 setting out: a car length (:data:`~trafficweaving.scenario.CAR_LENGTH`, 4.22 m) and a little more,
 so that the cars do not overlap lengthwise while the robot moves across."""
-SET_OUT_TIMES = np.linspace(0.6, 2.0, 15)
-"""When (s after the plan) the set-out rule checks the gap, at both cars' present speeds: a lane
-change of the settled motion set out in window 1 (0.3 s from now, at rest sideways) brings the
-robot's side over the divider about 1.1 s from now and its body clear of it about 1.55 s from now;
-the times cover that with about half a second to spare either side."""
+SET_OUT_FROM = 0.6
+"""The first time (s from now) the set-out rule checks the gap: a lane change set out in window 1
+(0.3 s from now, at rest sideways) brings the robot's side over the divider about 1.1 s from now
+with the settled motion (1.55 s with the comfort motion), so this leaves half a second or more to
+spare."""
 SET_OUT_COST = 100_000.0
 """Cost of setting out with the human closer than a mode's ``set_out_gap``: more than a sampled
 future's collision costs can add up to (1000 · 9.25 at each of 15 steps discounted by 0.9: about
@@ -91,14 +100,15 @@ future's collision costs can add up to (1000 · 9.25 at each of 15 steps discoun
 MODES = {
     "paper": Mode(),
     "decisive": Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP),
-    "comfort": Mode(MOTIONS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET),
+    "comfort": Mode(MOTIONS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP,
+                    set_out_until=2.8),
     "cautious": Mode(MOTIONS["settled"], TURN_BACK_COST, 0.2, COMMIT_OFFSET, SET_OUT_GAP),
 }
 """The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once under way,
-does not start one beside the human, settles on the lane centre); ``comfort`` (it keeps to a lane
-change once under way, within nuPlan's comfort limits; its slow lane changes miss the cutoff too
-often when it also waits to be clear of the human, docs/closed_loop.md); ``cautious`` (decisive,
-judged by the worst 20 % of its sampled futures: CVaR_0.2)."""
+does not start one beside the human, settles on the lane centre); ``comfort`` (the same within
+nuPlan's comfort limits, with longer lane changes and so a longer look at the gap before setting
+out); ``cautious`` (decisive, judged by the worst 20 % of its sampled futures: CVaR_0.2;
+docs/closed_loop.md)."""
 
 
 def risk_cost(scores: torch.Tensor, risk: float) -> torch.Tensor:
@@ -258,7 +268,7 @@ class Planner:
             robot, human = history[-1]
             if abs(robot[1] - LANE_CENTRE_Y[other]) >= self.mode.commit_offset:
                 rules += self.mode.turn_back_cost * turn_backs(candidates.actions, goal)
-            crossing_gaps = robot[0] - human[0] + (robot[2] - human[2]) * SET_OUT_TIMES
+            crossing_gaps = robot[0] - human[0] + (robot[2] - human[2]) * self.mode.set_out_times
             if np.abs(crossing_gaps).min() < self.mode.set_out_gap and abs(robot[1] - human[1]) >= CAR_WIDTH:
                 rules += SET_OUT_COST * set_outs(candidates.actions, goal)
         return torch.as_tensor(rules, dtype=self.dtype, device=self.device)

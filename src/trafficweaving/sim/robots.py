@@ -196,7 +196,7 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
       decisive mode (:data:`~trafficweaving.planning.planner.MODES`: settled steering, turn-back cost,
       no setting out beside the human);
     * ``planner-paper``: the same in the paper's mode exactly;
-    * ``planner-comfort``: decisive but for the set-out rule, with candidates that keep to nuPlan's comfort limits;
+    * ``planner-comfort``: decisive, with candidates that keep to nuPlan's comfort limits;
     * ``planner-cautious``: decisive, judging its candidates by CVaR (the worst 20 % of the futures);
     * ``planner-cv``: the decisive planner against :class:`ConstantVelocityHuman` (``model`` unused);
     * ``rules``: :class:`RuleBasedRobot` (``model``, ``deadline``, ``budget`` unused).
