@@ -20,7 +20,7 @@ from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import (MODES, OWN_FUTURES_SHARE, SCREENING_SAMPLES, SET_OUT_COST, Budget, Mode, Planner,
                                              example_history, risk_cost, set_outs, turn_backs)
 from trafficweaving.planning.steering import optimal_time, steer, steering_cost
-from trafficweaving.scenario import DT, HORIZON, LANE_CENTRE_Y
+from trafficweaving.scenario import CAR_WIDTH, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.sim.world import World
 
 LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
@@ -392,8 +392,6 @@ def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_w
 def test_the_set_out_rule_watches_the_gap_while_each_modes_lane_change_crosses_the_divider():
     """With half a second or more to spare either side, for the lane change from rest set out in
     window 1 (0.3 s from now)."""
-    from trafficweaving.scenario import CAR_WIDTH, LANE_DIVIDER_Y
-
     times = np.arange(1, 61) * DT
     for name, mode in MODES.items():
         if mode.set_out_gap:
