@@ -66,8 +66,8 @@ class Mode:
     set_out_until: float = 2.0
 
     def __post_init__(self):
-        lengths = (self.turn_back_cost, self.commit_offset, self.set_out_gap)
-        if (not all(v >= 0 and np.isfinite(v) for v in lengths) or not 0 < self.risk <= 1
+        non_negative = (self.turn_back_cost, self.commit_offset, self.set_out_gap)
+        if (not all(v >= 0 and np.isfinite(v) for v in non_negative) or not 0 < self.risk <= 1
                 or not SET_OUT_FROM < self.set_out_until < np.inf):
             raise InputError(f"a planner mode needs turn_back_cost, commit_offset and set_out_gap finite and >= 0, "
                              f"0 < risk <= 1 and set_out_until finite and > {SET_OUT_FROM}, got {self.turn_back_cost}, "
