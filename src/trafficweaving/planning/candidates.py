@@ -17,7 +17,7 @@ import numpy as np
 
 from ..dynamics import robot_longitudinal
 from ..scenario import DT, HORIZON, LANE_CENTRE_Y, LANES, REPLAN_STEPS
-from .steering import JERK_WEIGHT, steer
+from .steering import JERK_WEIGHT, jerk_limited_steer, steer
 
 ACCELERATIONS = (0.0, 4.0, -3.0, -6.0)
 """The longitudinal actions, m/s²; the lateral ones are the :data:`~trafficweaving.scenario.LANES`
@@ -56,12 +56,22 @@ class Motion:
     present acceleration at most ``jerk`` m/s³ (None: at once, and held through the window, as in
     the paper), the lateral steering's jerk weight ``steering_weight`` (ρ of :mod:`.steering`) and
     its shortest final time ``min_steering_time`` (s; :func:`~.steering.steer`: 0 as in the paper,
-    0.6 s settles on the lane centre without chatter)."""
+    0.6 s settles on the lane centre without chatter); or, with ``lateral_limits`` (largest
+    lateral acceleration, m/s², and jerk, m/s³), the time-optimal steering within them and
+    ``min_steering_time`` instead (:func:`~.steering.jerk_limited_steer`)."""
 
     accelerations: tuple[float, ...]
     jerk: float | None
-    steering_weight: float
+    steering_weight: float = JERK_WEIGHT
     min_steering_time: float = 0.0
+    lateral_limits: tuple[float, float] | None = None
+
+    def steer(self, state: np.ndarray, target: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """Lateral states ``[..., len(times), 3]`` (y, yd, ydd) at ``times`` (s) from ``state [..., 3]``
+        steering to the lane centre ``target [...]`` (m) as this motion does."""
+        if self.lateral_limits is not None:
+            return jerk_limited_steer(state, target, times, *self.lateral_limits, self.min_steering_time)
+        return steer(state, target, times, self.steering_weight, self.min_steering_time)[..., :3]
 
 
 SETTLING_TIME = 0.6
@@ -69,15 +79,16 @@ SETTLING_TIME = 0.6
 MOTIONS = {
     "paper": Motion(ACCELERATIONS, None, JERK_WEIGHT),
     "settled": Motion(ACCELERATIONS, None, JERK_WEIGHT, SETTLING_TIME),
-    "comfort": Motion((0.0, 2.0, -2.0, -4.0), 4.0, 60.0, SETTLING_TIME),
+    "comfort": Motion((0.0, 2.0, -2.0, -4.0), 4.0, min_steering_time=SETTLING_TIME, lateral_limits=(4.5, 7.0)),
 }
 """The paper's motion (its lane change from rest takes 2.0 s and peaks at 6.1 m/s² and 31 m/s³
 sideways); the same with lateral manoeuvres of at least :data:`SETTLING_TIME` (``settled``: no
-chatter on the lane centre, :mod:`.steering`); and one within nuPlan's comfort limits (longitudinal acceleration −4.05…2.40 m/s²,
-lateral 4.89 m/s², longitudinal jerk 4.13 m/s³, total jerk 8.37 m/s³): ramps at 4 m/s³, and a
-lane change of 3.2 s from rest (across the divider in about half of it) peaking at 2.4 m/s² and,
-sampled every 0.1 s, 7.0 m/s³ sideways, within the total jerk with a longitudinal ramp at the
-same time (a lane change turned back is not: the comfort mode's turn-back cost keeps that rare)."""
+chatter on the lane centre, :mod:`.steering`); and one within nuPlan's comfort limits
+(longitudinal acceleration −4.05…2.40 m/s², lateral 4.89 m/s², longitudinal jerk 4.13 m/s³, total
+jerk 8.37 m/s³): ramps at 4 m/s³, and time-optimal lateral manoeuvres of at least
+:data:`SETTLING_TIME` within 4.5 m/s² and 7.0 m/s³ (a lane change from rest takes 2.7 s, across
+the divider in half of it), within the total
+jerk with a longitudinal ramp at the same time, from any state, a lane change turned back included."""
 
 N_ACTIONS = len(ACCELERATIONS) * len(LANES)
 """Actions per window (8)."""
@@ -134,11 +145,10 @@ def rollout(present: np.ndarray, actions: np.ndarray, motion: Motion = MOTIONS["
     for k in range(w):
         codes = parent * base + lanes[:, k]  # prefix code after window k
         unique, inverse = np.unique(codes, return_inverse=True)
-        path = steer(starts[unique // base], targets[unique % base], times, motion.steering_weight,
-                     motion.min_steering_time)  # [P, 3, 4]
-        lateral[:, STEPS_PER_WINDOW * k: STEPS_PER_WINDOW * (k + 1)] = path[inverse, :, :3]
+        path = motion.steer(starts[unique // base], targets[unique % base], times)  # [P, 3, 3]
+        lateral[:, STEPS_PER_WINDOW * k: STEPS_PER_WINDOW * (k + 1)] = path[inverse]
         starts = np.zeros((base * (unique.max() + 1), 3))
-        starts[unique] = path[:, -1, :3]
+        starts[unique] = path[:, -1]
         parent = codes
     return np.stack([x, lateral[..., 0], xd, lateral[..., 1], xdd, lateral[..., 2]], axis=-1)
 

@@ -101,7 +101,7 @@ MODES = {
     "paper": Mode(),
     "decisive": Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP),
     "comfort": Mode(MOTIONS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP,
-                    set_out_until=2.8),
+                    set_out_until=2.5),
     "cautious": Mode(MOTIONS["settled"], TURN_BACK_COST, 0.2, COMMIT_OFFSET, SET_OUT_GAP),
 }
 """The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once under way,
