@@ -158,6 +158,9 @@ def main() -> None:
     parser.add_argument("--deadline", type=float, default=0.3)
     parser.add_argument("--realtime-precision", default="auto", choices=PRECISIONS)
     parser.add_argument("--skip-naive", action="store_true")
+    parser.add_argument("--random-numbers", choices=("common", "independent"), default="common",
+                        help="whether the candidates share their random numbers (HumanPredictor's "
+                        "common_random_numbers) in every plan of the benchmark")
     parser.add_argument("--episodes", type=Path, help="take the real-time situations from the closest calls of "
                         "these closed-loop episodes (simulate's --out folder) instead of simulated trials")
     args = parser.parse_args()
@@ -170,12 +173,13 @@ def main() -> None:
         parser.error(str(error))
     torch.set_num_threads(threads)
     model = load_model(args.model)
-    exact, low = HumanPredictor(model, precision="float32"), HumanPredictor(model, precision="bfloat16")
+    common = args.random_numbers == "common"
+    exact, low = (HumanPredictor(model, precision=p, common_random_numbers=common) for p in ("float32", "bfloat16"))
     budget = Budget()
     history, first = example_history(), Action.of(0.0, "right").index
     cost = PaperCost(goal_y=LANE_CENTRE_Y["left"])
 
-    report = {"threads": threads, "futures": budget.futures}
+    report = {"threads": threads, "futures": budget.futures, "random_numbers": args.random_numbers}
     report["matmul_peak_gflops"] = round(matmul_peak(2048, 136, 512), 1)
     planner = Planner(exact, budget)
     planner.plan(history, first, cost)  # warm-up
@@ -185,7 +189,7 @@ def main() -> None:
     fast = Planner(low, budget)
     fast.plan(history, first, cost)
     report["bfloat16_seconds"] = round(statistics.median(fast.plan(history, first, cost).seconds for _ in range(args.repeats)), 3)
-    quantised = Planner(HumanPredictor(model, precision="int8"), budget)
+    quantised = Planner(HumanPredictor(model, precision="int8", common_random_numbers=common), budget)
     quantised.plan(history, first, cost)  # warm-up: compiles the fused steps (cached on disk after the first run)
     report["int8_seconds"] = round(statistics.median(quantised.plan(history, first, cost).seconds
                                                      for _ in range(args.repeats)), 3)
@@ -197,7 +201,8 @@ def main() -> None:
 
     agree, regret, agree_full, regret_full, agree_bf16, regret_bf16, late, spread = [], [], [], [], [], [], [], []
     agree_int8, regret_int8 = [], []
-    realtime = Planner(HumanPredictor(model, precision=args.realtime_precision), budget, seed=1)
+    realtime = Planner(HumanPredictor(model, precision=args.realtime_precision, common_random_numbers=common), budget,
+                       seed=1)
     realtime.plan(history, first, cost, deadline=args.deadline)  # warm-up: measures its speed
     chosen = situations(args.situations) if args.episodes is None else closest_calls(args.episodes, args.situations)
     for k, (hist, fixed, c) in enumerate(chosen):

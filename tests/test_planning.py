@@ -1,6 +1,8 @@
 """The planner: lateral steering (boundary-value problem), candidate dynamics, costs, the fast
 sampler against the model's own, two-stage selection on a toy model, deadlines and MPC."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -20,7 +22,7 @@ from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import (MODES, OWN_FUTURES_SHARE, SCREENING_SAMPLES, SET_OUT_COST, Budget, Mode, Planner,
                                              example_history, risk_cost, set_outs, turn_backs)
 from trafficweaving.planning.steering import jerk_limited_steer, optimal_time, steer, steering_cost
-from trafficweaving.scenario import CAR_WIDTH, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y
+from trafficweaving.scenario import CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.sim.world import World
 
 LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
@@ -295,6 +297,29 @@ def test_the_predictors_one_shot_prediction_is_its_planning_protocol():
     assert predictor.precision == "float32"
 
 
+@pytest.mark.parametrize("variant", ["cvae", "cvae-hold"])
+def test_common_random_numbers_give_every_candidate_each_samples_draws(variant):
+    """Sample i of every candidate is drawn with the same random numbers: identical robot futures get
+    identical futures, a candidate's futures do not depend on which others are sampled with it, and
+    they have the distribution of independent draws (mean and spread of 4000 samples)."""
+    torch.manual_seed(0)
+    model = CVAE(CVAEConfig.variant(variant))
+    history = example_history()
+    candidates = robot_candidates(history[-1, 0], 0).states
+    futures = np.concatenate([candidates[:1], candidates[:1], candidates[-1:]])  # 0 and 1 the same
+    common, independent = HumanPredictor(model), HumanPredictor(model, common_random_numbers=False)
+    for predictor in (common, independent):
+        predictor.prepare(history, futures)
+    shared = common.sample(torch.arange(3), 4000, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(shared[:, 0], shared[:, 1], rtol=0, atol=0)
+    alone = common.sample(torch.tensor([2]), 4000, torch.Generator().manual_seed(3))
+    torch.testing.assert_close(alone[:, 0], shared[:, 2], rtol=0, atol=0)
+    apart = independent.sample(torch.arange(3), 4000, torch.Generator().manual_seed(3))
+    assert not torch.equal(apart[:, 0], apart[:, 1])
+    torch.testing.assert_close(shared.mean(0), apart.mean(0), rtol=0, atol=0.15)
+    torch.testing.assert_close(shared.std(0), apart.std(0), rtol=0.1, atol=0.05)
+
+
 # ---------------------------------------------------------------- two-stage planner on a toy model
 class ToyHuman:
     """Human accelerations ``N(0, 1)`` per step, independent of the robot: with :func:`toy_cost`
@@ -425,6 +450,70 @@ def test_the_set_out_rule_watches_the_gap_while_each_modes_lane_change_crosses_t
             over = np.abs(y - LANE_DIVIDER_Y) < CAR_WIDTH / 2  # the robot's body over the divider
             first, last = 0.3 + times[over][[0, -1]]
             assert mode.set_out_times[0] <= first - 0.45 and mode.set_out_times[-1] >= last + 0.45, name
+
+
+def test_a_mode_falls_back_when_time_runs_short_before_the_robot_has_set_out():
+    """The fallback plans from the first window the robot, settled in its start lane, would reach the
+    cutoff within ``fallback_within`` s, or ``standoff_within`` s while the set-out rule holds it
+    and would still hold it ``fallback_within`` s before the cutoff; not while a lane change is under
+    way."""
+    comfort, quick = MODES["comfort"], MODES["decisive"]
+    mode = replace(comfort, fallback=quick, fallback_within=2.0, standoff_within=3.0)
+    keep, go = Action.of(0.0, "right").index, Action.of(0.0, "left").index
+
+    def car(seconds_to_cutoff, speed=30.0, y=RIGHT, yd=0.0):
+        return np.array([CUTOFF_X - 30.0 * seconds_to_cutoff, y, speed, yd, 0.0, 0.0])
+
+    far = car(5.0, y=LEFT)
+    assert mode.needs_fallback(car(1.95), far, keep, LEFT) and not mode.needs_fallback(car(2.05), far, keep, LEFT)
+    assert not mode.needs_fallback(car(1.0), far, go, LEFT)  # set out: window 0 heads for the goal lane
+    assert not mode.needs_fallback(car(1.0, y=RIGHT + 0.5), far, keep, LEFT)  # turning back, not yet settled
+    assert not mode.needs_fallback(car(1.0, yd=0.5), far, keep, LEFT)
+    assert not mode.needs_fallback(car(1.0), far, keep, None)  # a cost without a goal lane
+    assert not mode.needs_fallback(car(1.0, speed=0.0), far, keep, LEFT)  # standing still
+    assert not comfort.needs_fallback(car(0.5), far, keep, LEFT)  # no fallback
+    # a stand-off: beside the human at its speed 2.9 s before the cutoff; not when drifting apart, or earlier
+    assert mode.blocks_set_out(car(2.9), car(2.9, y=LEFT)) and not mode.blocks_set_out(car(2.9), far)
+    assert not mode.blocks_set_out(car(2.9), car(2.9))  # the human in the robot's lane
+    assert mode.needs_fallback(car(2.9), car(2.9, y=LEFT), keep, LEFT)
+    assert not mode.needs_fallback(car(2.9), car(2.9, speed=25.0, y=LEFT), keep, LEFT)  # clear in time
+    assert mode.blocks_set_out(car(2.9), car(2.9, speed=25.0, y=LEFT))
+    assert not mode.needs_fallback(car(3.1), car(3.1, y=LEFT), keep, LEFT)
+    with pytest.raises(InputError):
+        Mode(fallback=mode)  # a fallback has none of its own
+    with pytest.raises(InputError):
+        Mode(standoff_within=-1.0)
+
+    # the planner plans in the mode it is given, moving as that mode
+    planner, cost = Planner(ToyHuman(), seed=0, mode=mode), GoalToyCost(LEFT)
+    for given, motion in ((None, comfort.motion), (quick, quick.motion)):
+        plan = planner.plan(HISTORY_TOY, keep, cost, mode=given)
+        assert plan.mode is (given or mode)
+        np.testing.assert_array_equal(plan.robot, robot_candidates(PRESENT_TOY, keep, motion).states[plan.index])
+    with pytest.raises(InputError):
+        planner.plan(HISTORY_TOY, keep, cost, mode="decisive")
+
+
+def test_mpc_plans_in_the_fallback_from_the_first_plan_that_needs_it_to_the_end_of_the_episode():
+    """A robot 3 s before the cutoff beside a slower human (4 m ahead, 5 m/s slower) it cannot set
+    out beside yet, the fallback within 2.5 s: the first plans are comfortable, then every plan
+    falls back, also once the lane change is under way; a new episode starts over."""
+    torch.manual_seed(0)
+    mode = replace(MODES["comfort"], fallback=MODES["decisive"], fallback_within=2.5)
+    policy = MPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), mode=mode))
+    start = np.array([[[CUTOFF_X - 29.0 * 3.0 - 29.0 * DT * (HOLD_STEPS - 1), RIGHT, 29.0, 0, 0, 0],
+                       [CUTOFF_X - 29.0 * 3.0 - 29.0 * DT * (HOLD_STEPS - 1) + 4.0, LEFT, 24.0, 0, 0, 0]]])
+    for _ in range(2):
+        world = World(start)
+        policy.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
+        for _ in range(HOLD_STEPS + 30):
+            world.step(np.stack([policy.act(world.history), np.zeros((1, 2))], axis=1))
+        seconds = [(CUTOFF_X - world.history[0, 0, t, 0]) / world.history[0, 0, t, 2] for t in policy.plan_steps]
+        fell = next(k for k, s in enumerate(seconds) if s < 2.5)
+        assert fell > 0 and all(p.mode is mode for p in policy.plans[:fell])
+        assert all(p.mode is MODES["decisive"] for p in policy.plans[fell:]) and policy.fallen_back
+        assert any(Action(int(p.actions[0])).lane == "left" for p in policy.plans[fell:])  # under way, still
+        assert world.history[0, 0, -1, 1] > LANE_DIVIDER_Y  # across
 
 
 def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():

@@ -15,8 +15,8 @@ import torch
 from trafficweaving.model.constant_velocity import ConstantVelocityHuman
 from trafficweaving.planning.candidates import ACCELERATIONS, Action, rollout
 from trafficweaving.planning.mpc import HOLD_STEPS, NonBlockingMPCPolicy
-from trafficweaving.planning.planner import Budget, Planner
-from trafficweaving.scenario import DT, LANE_CENTRE_Y
+from trafficweaving.planning.planner import MODES, STANDOFF_WITHIN, Budget, Planner
+from trafficweaving.scenario import CUTOFF_X, DT, LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.sim.world import World
 
 LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
@@ -36,11 +36,11 @@ class SlowPlanner(Planner):
         return super().plan(*args, **kwargs)
 
 
-def drive(policy, steps, wait_at=()):
-    """Step a world with the robot as car 0 against a human at constant speed; before acting at
-    the steps in ``wait_at`` wait for the running plan (the time a real-time loop gives it).
-    Returns the world and the seconds each act took."""
-    world = World(START)
+def drive(policy, steps, wait_at=(), start=START):
+    """Step a world from ``start`` with the robot as car 0 against a human at constant speed;
+    before acting at the steps in ``wait_at`` wait for the running plan (the time a real-time loop
+    gives it). Returns the world and the seconds each act took."""
+    world = World(start)
     policy.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
     seconds = []
     for t in range(steps):
@@ -76,6 +76,28 @@ def test_in_time_plans_are_executed_window_by_window():
         expected = executed_window(world, t, int(plan.actions[1]))
         np.testing.assert_allclose(robot[t + 1: t + 4, 4:6], expected[:, 4:6], atol=1e-9)
     assert len(policy.latencies) == len(policy.plans)
+    policy.close()
+
+
+def test_the_comfort_first_robot_executes_each_window_as_the_mode_that_planned_it():
+    """9 m ahead of a human 1.5 m/s faster in the other lane, 4.1 s before the cutoff: the comfort
+    mode's longer look holds the robot in its lane, and as the stand-off would last until 2 s before
+    the cutoff (:data:`STANDOFF_WITHIN`) the decisive fallback takes over and sets out; every executed
+    window is rolled out with the motion of the plan that chose it."""
+    mode = MODES["comfort-first"]
+    policy = NonBlockingMPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), mode=mode))
+    start = START + [[[3.0, 0, 0, 0, 0, 0], [-8.0, 0, 1.5, 0, 0, 0]]]
+    world, _ = drive(policy, 40, wait_at=range(HOLD_STEPS, 40, 3), start=start)
+    robot = world.history[0, 0]
+    modes = [plan.mode for plan in policy.plans]
+    fell = modes.index(mode.fallback)
+    assert fell > 0 and set(modes[:fell]) == {mode} and set(modes[fell:]) == {mode.fallback} and policy.fallen_back
+    made = policy.plan_steps[fell]
+    assert (CUTOFF_X - robot[made, 0]) / robot[made, 2] < STANDOFF_WITHIN and robot[-1, 1] > LANE_DIVIDER_Y
+    for made, plan in zip(policy.plan_steps[:-1], policy.plans[:-1]):
+        t = made + 3
+        expected = rollout(robot[t], np.array([[int(plan.actions[1])]]), plan.mode.motion)[0]
+        np.testing.assert_allclose(robot[t + 1: t + 4, 4:6], expected[:, 4:6], atol=1e-9)
     policy.close()
 
 

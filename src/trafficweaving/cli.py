@@ -773,8 +773,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=POSITIVE, required=True, help="episodes 0..N-1 (each from --seed and its index)")
     p.add_argument("--robot", default="planner", help="planner (default: decisive, keeps to a lane change and settles "
                                                       "on the lane centre), planner-paper (the paper's exactly), "
-                                                      "planner-comfort (within nuPlan's comfort limits), planner-cautious "
-                                                      "(CVaR), planner-cv or rules")
+                                                      "planner-comfort (within nuPlan's comfort limits), "
+                                                      "planner-comfort-first (comfort until time runs short, then "
+                                                      "decisive), planner-cautious (CVaR), planner-cv or rules")
     p.add_argument("--human", required=True, help=HUMAN_SPECS)
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--model", default="default", help="the planner's human model: checkpoint path, default, or authors:PATH")

@@ -75,11 +75,16 @@ class HumanPredictor:
     quantises the hidden state and runs the decoder's steps fused and compiled
     (:mod:`~trafficweaving.model.fused_decoder`; the first plan compiles for about 15 s).
     ``chunk_rows``: decoder rows per chunk (the working set stays in cache).
+    ``common_random_numbers``: sample ``i`` of every candidate is drawn with the same random numbers
+    (latent noise, output uniforms and normals): each candidate's futures keep their distribution,
+    and the candidates' sampled costs are compared in pairs, with less noise in their differences
+    (docs/planner.md).
 
     :attr:`device` and :attr:`dtype` are the model's; tensors returned live there.
     """
 
-    def __init__(self, model: CVAE | Mixture, precision: str = "float32", chunk_rows: int = 2048):
+    def __init__(self, model: CVAE | Mixture, precision: str = "float32", chunk_rows: int = 2048,
+                 common_random_numbers: bool = True):
         if model.config.robot_future != "recorded":
             raise InputError(f"the model is conditioned on a {model.config.robot_future} of the robot's future (a driver "
                              f"model), so it cannot tell candidate robot futures apart (expected a model conditioned on "
@@ -91,6 +96,7 @@ class HumanPredictor:
         self.rollout = rollout(model, validate.integer("chunk_rows", chunk_rows, 1), matmul_dtype)
         self.context: dict | None = None
         self.candidates = 0
+        self.common_random_numbers = bool(common_random_numbers)
 
     @property
     def precision(self) -> str:
@@ -149,6 +155,7 @@ class HumanPredictor:
               generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
         """Accelerations ``[n, k, 15, 2]`` (m/s²) and latent values ``[n, k]`` for ``candidates [k]``
         (None: all)."""
-        latents = self.rollout.sample_latents(context, n, generator, candidates)
-        actions = self.rollout.sample(context, latents, candidates, generator)
+        common = self.common_random_numbers
+        latents = self.rollout.sample_latents(context, n, generator, candidates, common)
+        actions = self.rollout.sample(context, latents, candidates, generator, common=common)
         return self.model.actions_to_physical(actions), latents

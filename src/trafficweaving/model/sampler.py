@@ -36,16 +36,20 @@ from .mixture import Mixture
 
 
 def _rows(context: dict, latents: torch.Tensor, candidates: torch.Tensor | None, generator: torch.Generator | None,
-          noise: tuple[torch.Tensor, torch.Tensor] | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+          noise: tuple[torch.Tensor, torch.Tensor] | None, common: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The decoder rows of ``latents [n, C']``, row ``r`` = (sample ``r // C'``, candidate ``r % C'``):
     their candidate indices ``[nC']``, uniforms ``[nC', 15]`` and normals ``[nC', 15, 2]`` (drawn
-    from ``generator`` unless ``noise`` gives them)."""
+    from ``generator`` unless ``noise`` gives them; ``common``: one draw per sample, shared by the
+    candidates)."""
     n, c_count = latents.shape
     device, dtype = latents.device, context["log_p_joint"].dtype
     cand = torch.arange(c_count, device=device) if candidates is None else candidates
     if noise is None:
-        uniform = torch.rand((n * c_count, HORIZON), generator=generator, device=device, dtype=dtype)
-        normal = torch.randn((n * c_count, HORIZON, 2), generator=generator, device=device, dtype=dtype)
+        draws = 1 if common else c_count
+        uniform = torch.rand((n, draws, HORIZON), generator=generator, device=device, dtype=dtype)
+        normal = torch.randn((n, draws, HORIZON, 2), generator=generator, device=device, dtype=dtype)
+        uniform = uniform.expand(n, c_count, HORIZON).reshape(-1, HORIZON)
+        normal = normal.expand(n, c_count, HORIZON, 2).reshape(-1, HORIZON, 2)
     else:
         uniform, normal = noise[0].reshape(-1, HORIZON), noise[1].reshape(-1, HORIZON, 2)
     return cand.repeat(n), uniform, normal
@@ -134,11 +138,15 @@ class BatchedRollout:
                 "log_p_joint": m.joint_log_prob(logits),  # [C, Z]
                 "present_action": present_action, "x_gates": x_gates, "x_init": x_init, "robot_inputs": robot_inputs}
 
-    def sample_latents(self, context: dict, n: int, generator: torch.Generator | None, candidates: torch.Tensor | None = None) -> torch.Tensor:
-        """Joint latent values ``[n, C']`` drawn from p(z|x) of each candidate (all, or ``candidates``)."""
+    def sample_latents(self, context: dict, n: int, generator: torch.Generator | None, candidates: torch.Tensor | None = None,
+                       common: bool = False) -> torch.Tensor:
+        """Joint latent values ``[n, C']`` drawn from p(z|x) of each candidate (all, or
+        ``candidates``; ``common``: Gumbel-max with one draw of noise per sample, shared by the
+        candidates)."""
         log_p = context["log_p_z"] if candidates is None else context["log_p_z"][candidates]
         c = self.model.config
-        u = torch.rand((n, *log_p.shape), generator=generator, device=log_p.device, dtype=log_p.dtype)
+        u = torch.rand((n, 1 if common else len(log_p), *log_p.shape[1:]), generator=generator, device=log_p.device,
+                       dtype=log_p.dtype)
         classes = torch.argmax(log_p - torch.log(-torch.log(u.clamp_min(1e-20))), dim=-1)  # [n, C', N_z]
         place = c.latent_classes ** torch.arange(c.latent_vars - 1, -1, -1, device=log_p.device)
         return (classes * place).sum(-1)
@@ -146,12 +154,13 @@ class BatchedRollout:
     @torch.no_grad()
     def sample(self, context: dict, latents: torch.Tensor, candidates: torch.Tensor | None = None,
                generator: torch.Generator | None = None,
-               noise: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+               noise: tuple[torch.Tensor, torch.Tensor] | None = None, common: bool = False) -> torch.Tensor:
         """Human actions ``[n, C', 15, 2]`` (standardised) for ``latents [n, C']`` of the
         candidates ``candidates [C']`` (default: all). ``noise`` optionally gives the uniforms
-        ``[n, C', 15]`` and normals ``[n, C', 15, 2]`` (as :meth:`CVAE.sample_actions` takes them)."""
+        ``[n, C', 15]`` and normals ``[n, C', 15, 2]`` (as :meth:`CVAE.sample_actions` takes them);
+        else they are drawn, with ``common``: one draw per sample, shared by the candidates."""
         n, c_count = latents.shape
-        rows_cand, uniform, normal = _rows(context, latents, candidates, generator, noise)
+        rows_cand, uniform, normal = _rows(context, latents, candidates, generator, noise, common)
         return self.decode_rows(context, rows_cand, latents.reshape(-1), uniform, normal).view(n, c_count, HORIZON, 2)
 
     def decode_rows(self, context: dict, rows_cand: torch.Tensor, rows_z: torch.Tensor, uniform: torch.Tensor,
@@ -239,19 +248,22 @@ class MixtureRollout:
         log_w = self.model.log_weights.to(parts[0]["log_p_joint"].dtype)
         return {"parts": parts, "log_p_joint": torch.cat([w + p["log_p_joint"] for w, p in zip(log_w, parts)], dim=-1)}
 
-    def sample_latents(self, context: dict, n: int, generator: torch.Generator | None, candidates: torch.Tensor | None = None) -> torch.Tensor:
-        """Joint latent values ``[n, C']`` of the mixture drawn for each candidate (all, or ``candidates``)."""
+    def sample_latents(self, context: dict, n: int, generator: torch.Generator | None, candidates: torch.Tensor | None = None,
+                       common: bool = False) -> torch.Tensor:
+        """Joint latent values ``[n, C']`` of the mixture drawn for each candidate (all, or
+        ``candidates``; ``common`` as :meth:`BatchedRollout.sample_latents`)."""
         log_p = context["log_p_joint"] if candidates is None else context["log_p_joint"][candidates]
-        u = torch.rand((n, *log_p.shape), generator=generator, device=log_p.device, dtype=log_p.dtype)
+        u = torch.rand((n, 1 if common else len(log_p), log_p.shape[-1]), generator=generator, device=log_p.device,
+                       dtype=log_p.dtype)
         return torch.argmax(log_p - torch.log(-torch.log(u.clamp_min(1e-20))), dim=-1)
 
     @torch.no_grad()
     def sample(self, context: dict, latents: torch.Tensor, candidates: torch.Tensor | None = None,
                generator: torch.Generator | None = None,
-               noise: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+               noise: tuple[torch.Tensor, torch.Tensor] | None = None, common: bool = False) -> torch.Tensor:
         """As :meth:`BatchedRollout.sample`, each row by the component its latent value belongs to."""
         n, c_count = latents.shape
-        rows_cand, uniform, normal = _rows(context, latents, candidates, generator, noise)
+        rows_cand, uniform, normal = _rows(context, latents, candidates, generator, noise, common)
         rows_z = latents.reshape(-1)
         out = torch.empty((len(rows_z), HORIZON, 2), device=rows_z.device, dtype=uniform.dtype)
         for part, ctx, low, high in zip(self.parts, context["parts"], self.offsets, self.offsets[1:]):

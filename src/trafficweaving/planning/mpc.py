@@ -23,7 +23,7 @@ from ..errors import InputError
 from ..scenario import LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
 from .candidates import STEPS_PER_WINDOW, Action, rollout
 from .costs import Cost, PaperCost
-from .planner import Budget, Plan, Planner, check_cost, plan_options
+from .planner import Budget, Mode, Plan, Planner, check_cost, plan_options
 
 HOLD_STEPS = 8
 """Steps the robot holds its lane at constant speed before its first plan."""
@@ -52,6 +52,7 @@ class MPCPolicy:
         self.plans: list[Plan] = []
         self.plan_steps: list[int] = []  # the present step t of every plan
         self.latencies: list[float] = []
+        self.fallen_back = False  # whether this episode plans in the planner's fallback mode
 
     def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
         """Start an episode from ``start [1, 2, 6]`` (both cars' states ``[x, y, xd, yd, xdd,
@@ -71,6 +72,7 @@ class MPCPolicy:
         self.queue = list(rollout(robot, np.full((1, windows), self.hold), self.planner.motion)[0, : self.hold_steps])
         self.next_fixed = self.hold
         self.plans, self.plan_steps, self.latencies = [], [], []
+        self.fallen_back = False
         self.planner.generator.manual_seed(int(rng.integers(2**63)))
 
     def act(self, history: np.ndarray) -> np.ndarray:
@@ -89,13 +91,23 @@ class MPCPolicy:
         if not self.queue:
             robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: robot, human
             clock = time.perf_counter()
-            plan = self.planner.plan(robot_first, self.next_fixed, self.cost, budget=self.budget, deadline=self.deadline)
+            plan = self.planner.plan(robot_first, self.next_fixed, self.cost, budget=self.budget, deadline=self.deadline,
+                                     mode=self.mode(robot_first[-1], self.next_fixed))
             self.latencies.append(time.perf_counter() - clock)
             self.plans.append(plan)
             self.plan_steps.append(history.shape[2] - 1)
             self.next_fixed = int(plan.actions[1])
             self.queue = list(plan.robot[:STEPS_PER_WINDOW])
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
+
+    def mode(self, present: np.ndarray, first_action: int) -> Mode:
+        """The mode of the plan from the present states ``present [2, 6]`` (robot, human) with window 0
+        fixed to ``first_action``: the planner's, or its fallback from the first plan that needs it
+        to the end of the episode (:meth:`~.planner.Mode.needs_fallback`; :attr:`fallen_back`)."""
+        own = self.planner.mode
+        self.fallen_back = self.fallen_back or own.needs_fallback(*present, first_action,
+                                                                  getattr(self.cost, "goal_y", None))
+        return own.fallback if self.fallen_back else own
 
 
 class NonBlockingMPCPolicy(MPCPolicy):
@@ -131,6 +143,7 @@ class NonBlockingMPCPolicy(MPCPolicy):
                                             initializer=torch.set_num_threads, initargs=(threads,))
         self._pending: tuple[int, Future] | None = None  # (step it was made at, the plan's future)
         self.upcoming: list[int] = []  # the current plan's actions for the windows after the executing one
+        self.motion = planner.motion  # how the current plan moves the robot (its mode's motion)
         self.window = 0  # the action index of the window being executed
         self.late_steps: list[int] = []
 
@@ -139,7 +152,7 @@ class NonBlockingMPCPolicy(MPCPolicy):
         first (it draws from the generator being reseeded) and discarded."""
         self._drain()
         super().reset(rng, start, me)
-        self.upcoming, self.window, self.late_steps = [], self.hold, []
+        self.upcoming, self.window, self.late_steps, self.motion = [], self.hold, [], self.planner.motion
 
     def act(self, history: np.ndarray) -> np.ndarray:
         """As :meth:`MPCPolicy.act` (``history [1, 2, t+1, 6]`` -> ``[1, 2]``), without waiting for
@@ -152,13 +165,14 @@ class NonBlockingMPCPolicy(MPCPolicy):
             t = history.shape[2] - 1
             plan = self._collect(t)
             if plan is not None:
-                self.upcoming = [int(a) for a in plan.actions[1:]]
+                self.upcoming, self.motion = [int(a) for a in plan.actions[1:]], plan.mode.motion
             self.window = self.upcoming.pop(0) if self.upcoming else Action.of(0.0, Action(self.window).lane).index
             robot_now = history[0, self.me, -1]
-            self.queue = list(rollout(robot_now, np.array([[self.window]]), self.planner.motion)[0])
+            self.queue = list(rollout(robot_now, np.array([[self.window]]), self.motion)[0])
             if self._pending is None:
                 robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: a copy
-                self._pending = (t, self._executor.submit(self._plan, robot_first, self.window))
+                mode = self.mode(robot_first[-1], self.window)
+                self._pending = (t, self._executor.submit(self._plan, robot_first, self.window, mode))
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
 
     def warm_up(self, history: np.ndarray, plans: int = 3) -> None:
@@ -175,10 +189,11 @@ class NonBlockingMPCPolicy(MPCPolicy):
         """Whether a plan is running in the planner thread."""
         return self._pending is not None and not self._pending[1].done()
 
-    def _plan(self, robot_first: np.ndarray, first_action: int) -> tuple[Plan, float]:
-        """One plan (runs in the planner thread) and the seconds it took."""
+    def _plan(self, robot_first: np.ndarray, first_action: int, mode: Mode) -> tuple[Plan, float]:
+        """One plan in ``mode`` (runs in the planner thread) and the seconds it took."""
         clock = time.perf_counter()
-        plan = self.planner.plan(robot_first, first_action, self.cost, budget=self.budget, deadline=self.deadline)
+        plan = self.planner.plan(robot_first, first_action, self.cost, budget=self.budget, deadline=self.deadline,
+                                 mode=mode)
         return plan, time.perf_counter() - clock
 
     def _collect(self, t: int) -> Plan | None:

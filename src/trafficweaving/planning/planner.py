@@ -17,7 +17,7 @@ in the paper. The human is any :class:`HumanModel` (the CVAE's is
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -26,8 +26,8 @@ import torch
 from .. import validate
 from ..dynamics import future_states
 from ..errors import InputError
-from ..scenario import CAR_WIDTH, DT, HORIZON, LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
-from .candidates import MOTIONS, N_ACTIONS, N_CANDIDATES, WINDOWS, Candidates, Motion, robot_candidates
+from ..scenario import CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
+from .candidates import MOTIONS, N_ACTIONS, N_CANDIDATES, WINDOWS, Action, Candidates, Motion, robot_candidates
 from .costs import Cost
 
 
@@ -56,7 +56,13 @@ class Mode:
     more apart sideways), a candidate that sets out for the goal lane in window 1
     (:func:`set_outs`) costs :data:`SET_OUT_COST`: the robot does not start a lane change beside
     the human (0: it may, the paper's). ``set_out_until``: about half a second after the
-    ``motion``'s lane change, set out in window 1, takes the robot's body clear of the divider."""
+    ``motion``'s lane change, set out in window 1, takes the robot's body clear of the divider.
+    ``fallback``: the mode a receding-horizon policy plans in (None: none) from the first plan where
+    the robot has not set out for the goal lane and would reach the cutoff within
+    ``fallback_within`` s at its present speed, or within ``standoff_within`` s in a stand-off
+    (:meth:`needs_fallback`), to the end of the episode
+    (:class:`~.mpc.MPCPolicy`): a comfortable mode that falls back on a quicker one when time runs
+    short."""
 
     motion: Motion = MOTIONS["paper"]
     turn_back_cost: float = 0.0
@@ -64,14 +70,54 @@ class Mode:
     commit_offset: float = 0.0
     set_out_gap: float = 0.0
     set_out_until: float = 2.0
+    fallback: Mode | None = None
+    fallback_within: float = 0.0
+    standoff_within: float = 0.0
 
     def __post_init__(self):
-        non_negative = (self.turn_back_cost, self.commit_offset, self.set_out_gap)
+        non_negative = (self.turn_back_cost, self.commit_offset, self.set_out_gap, self.fallback_within,
+                        self.standoff_within)
         if (not all(v >= 0 and np.isfinite(v) for v in non_negative) or not 0 < self.risk <= 1
-                or not SET_OUT_FROM < self.set_out_until < np.inf):
-            raise InputError(f"a planner mode needs turn_back_cost, commit_offset and set_out_gap finite and >= 0, "
-                             f"0 < risk <= 1 and set_out_until finite and > {SET_OUT_FROM}, got {self.turn_back_cost}, "
-                             f"{self.commit_offset}, {self.set_out_gap}, {self.risk}, {self.set_out_until}")
+                or not SET_OUT_FROM < self.set_out_until < np.inf
+                or not (self.fallback is None or isinstance(self.fallback, Mode) and self.fallback.fallback is None)):
+            raise InputError(f"a planner mode needs turn_back_cost, commit_offset, set_out_gap, fallback_within and "
+                             f"standoff_within finite and >= 0, 0 < risk <= 1, set_out_until finite and > "
+                             f"{SET_OUT_FROM} and a fallback that is None or a Mode without a fallback of its own, got "
+                             f"{self.turn_back_cost}, {self.commit_offset}, {self.set_out_gap}, {self.fallback_within}, "
+                             f"{self.standoff_within}, {self.risk}, {self.set_out_until}, {self.fallback!r}")
+
+    def blocks_set_out(self, robot: np.ndarray, human: np.ndarray) -> bool:
+        """Whether the set-out rule holds the robot in its lane, from both cars' present states
+        ``robot [6]``, ``human [6]``: the human would be less than ``set_out_gap`` ahead or behind at
+        any of :attr:`set_out_times`, both keeping their speeds, and is not in the robot's lane."""
+        crossing_gaps = robot[0] - human[0] + (robot[2] - human[2]) * self.set_out_times
+        return bool(np.abs(crossing_gaps).min() < self.set_out_gap and abs(robot[1] - human[1]) >= CAR_WIDTH)
+
+    def needs_fallback(self, robot: np.ndarray, human: np.ndarray, first_action: int, goal_y: float | None) -> bool:
+        """Whether a plan from the cars' present states ``robot [6]`` and ``human [6]``, the robot
+        executing the action ``first_action`` (window 0), towards the lane centre ``goal_y`` (m;
+        None: no goal lane) falls back on the ``fallback`` mode: the robot has not set out (window
+        0 keeps to its lane, and it is within :data:`SETTLED_OFFSET` m of its centre and moving
+        sideways slower than :data:`SETTLED_SPEED` m/s) and would reach
+        :data:`~trafficweaving.scenario.CUTOFF_X` at its present speed (standing still: never)
+        within ``fallback_within`` s; or within ``standoff_within`` s while the set-out rule holds
+        it (:meth:`blocks_set_out`) and, both cars keeping their speeds, would still hold it when
+        ``fallback_within`` s are left: a stand-off the comfortable mode does not get out of in
+        time. A lane change under way is not switched over: the two motions' rollouts of it differ."""
+        if self.fallback is None or goal_y is None:
+            return False
+        lane = Action(first_action).lane
+        settled = abs(robot[1] - LANE_CENTRE_Y[lane]) < SETTLED_OFFSET and abs(robot[3]) < SETTLED_SPEED
+        if lane == lane_of(np.array([goal_y]))[0] or not settled:
+            return False
+        seconds_to_cutoff = (CUTOFF_X - robot[0]) / robot[2] if robot[2] > 0 else np.inf
+        if seconds_to_cutoff < self.fallback_within:
+            return True
+        if seconds_to_cutoff >= self.standoff_within:
+            return False
+        ahead = seconds_to_cutoff - self.fallback_within  # s until fallback_within are left
+        later = [car + np.array([car[2] * ahead, 0, 0, 0, 0, 0]) for car in (robot, human)]
+        return self.blocks_set_out(robot, human) and self.blocks_set_out(*later)
 
     @property
     def set_out_times(self) -> np.ndarray:
@@ -93,22 +139,42 @@ SET_OUT_FROM = 0.6
 (0.3 s from now, at rest sideways) brings the robot's side over the divider about 1.1 s from now
 with the settled motion (1.55 s with the comfort motion), so this leaves half a second or more to
 spare."""
+SETTLED_OFFSET = 0.3
+"""How close (m) to its lane's centre the robot is settled in it (:meth:`Mode.needs_fallback`)."""
+SETTLED_SPEED = 0.3
+"""How slowly (m/s) the robot moves sideways when settled in its lane (:meth:`Mode.needs_fallback`)."""
 SET_OUT_COST = 100_000.0
 """Cost of setting out with the human closer than a mode's ``set_out_gap``: more than a sampled
 future's collision costs can add up to (1000 · 9.25 at each of 15 steps discounted by 0.9: about
 66,000), so it acts as a rule."""
+STANDOFF_WITHIN = 3.0
+"""How long (s) before the cutoff a ``comfort-first`` robot that has not set out falls back on the
+decisive mode in a stand-off: while the set-out rule holds it in its lane and, both cars keeping
+their speeds, would still hold it :data:`FALLBACK_WITHIN` s before the cutoff
+(:meth:`Mode.needs_fallback`; docs/closed_loop.md)."""
+FALLBACK_WITHIN = 2.0
+"""How long (s) before the cutoff a ``comfort-first`` robot that has not set out falls back on the
+decisive mode (:meth:`Mode.needs_fallback`). Set out a window later, the comfort motion's lane
+change would take the robot across the swap line (1.4 s from rest) 0.3 s before the cutoff, the
+decisive one's (1.0 s) 0.7 s before it: a little time for the decisive robot to get clear of the
+human first (docs/closed_loop.md)."""
+_DECISIVE = Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP)
+_COMFORT = Mode(MOTIONS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP, set_out_until=2.5)
 MODES = {
     "paper": Mode(),
-    "decisive": Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP),
-    "comfort": Mode(MOTIONS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP,
-                    set_out_until=2.5),
-    "cautious": Mode(MOTIONS["settled"], TURN_BACK_COST, 0.2, COMMIT_OFFSET, SET_OUT_GAP),
+    "decisive": _DECISIVE,
+    "comfort": _COMFORT,
+    "cautious": replace(_DECISIVE, risk=0.2),
+    "comfort-first": replace(_COMFORT, fallback=_DECISIVE, fallback_within=FALLBACK_WITHIN,
+                             standoff_within=STANDOFF_WITHIN),
 }
 """The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once under way,
 does not start one beside the human, settles on the lane centre); ``comfort`` (the same within
 nuPlan's comfort limits, with longer lane changes and so a longer look at the gap before setting
-out); ``cautious`` (decisive, judged by the worst 20 % of its sampled futures: CVaR_0.2;
-docs/closed_loop.md)."""
+out); ``cautious`` (decisive, judged by the worst 20 % of its sampled futures: CVaR_0.2);
+``comfort-first`` (comfort, falling back on decisive when the robot has not set out
+:data:`FALLBACK_WITHIN` s before the cutoff, or :data:`STANDOFF_WITHIN` s before it in a
+stand-off; docs/closed_loop.md)."""
 
 
 def risk_cost(scores: torch.Tensor, risk: float) -> torch.Tensor:
@@ -201,7 +267,8 @@ class Plan:
     ``candidates`` (all robot futures), ``first_stage_cost [C]`` (the mode's cost, :class:`Mode`),
     ``finalists [k]`` and ``second_stage_cost [k]``, ``human [n, 15, 6]`` sampled human futures
     for the chosen candidate, ``futures`` (human futures simulated), ``seconds``, and
-    ``first_stage_samples`` / ``second_stage_samples`` actually used."""
+    ``first_stage_samples`` / ``second_stage_samples`` actually used, and the ``mode`` it planned in
+    (the planner's, or the one :meth:`Planner.plan` was given)."""
 
     actions: np.ndarray
     index: int
@@ -215,6 +282,7 @@ class Plan:
     seconds: float
     first_stage_samples: int
     second_stage_samples: int
+    mode: Mode
     timings: dict = field(default_factory=dict)
 
 
@@ -240,22 +308,28 @@ class Planner:
 
     @property
     def motion(self) -> Motion:
-        """How the candidates move the robot (the mode's)."""
+        """How the candidates move the robot (the mode's; a plan in another mode moves as its
+        :attr:`Plan.mode`)."""
         return self.mode.motion
 
-    def _situation(self, history, first_action) -> tuple[np.ndarray, Candidates, torch.Tensor, torch.Tensor]:
-        """The checked ``history [t+1, 2, 6]``, the candidates from it with window 0 fixed to the
-        checked ``first_action``, their states ``[C, 15, 6]`` and the human's present state ``[6]``
-        as tensors."""
+    def _situation(self, history, first_action, mode: Mode | None) -> tuple[np.ndarray, Mode, Candidates,
+                                                                             torch.Tensor, torch.Tensor]:
+        """The checked ``history [t+1, 2, 6]``, the checked ``mode`` (None: the planner's), the
+        candidates from the history moving as that mode with window 0 fixed to the checked
+        ``first_action``, their states ``[C, 15, 6]`` and the human's present state ``[6]`` as
+        tensors."""
         history = validate.history(history)
+        mode = self.mode if mode is None else mode
+        if not isinstance(mode, Mode):
+            raise InputError(f"mode must be a planner Mode or None, got {mode!r}")
         candidates = robot_candidates(history[-1, 0], validate.integer("first_action", first_action, 0, N_ACTIONS - 1),
-                                      self.motion)
+                                      mode.motion)
         robot = torch.as_tensor(candidates.states, dtype=self.dtype, device=self.device)
         human_present = torch.as_tensor(history[-1, 1], dtype=self.dtype, device=self.device)
-        return history, candidates, robot, human_present
+        return history, mode, candidates, robot, human_present
 
-    def _rules(self, candidates: Candidates, history: np.ndarray, cost: Cost) -> torch.Tensor:
-        """The mode's rule costs of each candidate ``[C]`` towards the goal lane of ``cost`` (its
+    def _rules(self, mode: Mode, candidates: Candidates, history: np.ndarray, cost: Cost) -> torch.Tensor:
+        """``mode``'s rule costs of each candidate ``[C]`` towards the goal lane of ``cost`` (its
         ``goal_y``; none for a cost without one): turning back (:func:`turn_backs`, once the robot,
         at the last step of ``history``, is ``commit_offset`` from the other lane's centre) and
         setting out beside the human (:func:`set_outs`, while the human would be less than
@@ -266,10 +340,9 @@ class Planner:
             goal = str(lane_of(np.array([goal_y]))[0])
             other = next(lane for lane in LANES if lane != goal)
             robot, human = history[-1]
-            if abs(robot[1] - LANE_CENTRE_Y[other]) >= self.mode.commit_offset:
-                rules += self.mode.turn_back_cost * turn_backs(candidates.actions, goal)
-            crossing_gaps = robot[0] - human[0] + (robot[2] - human[2]) * self.mode.set_out_times
-            if np.abs(crossing_gaps).min() < self.mode.set_out_gap and abs(robot[1] - human[1]) >= CAR_WIDTH:
+            if abs(robot[1] - LANE_CENTRE_Y[other]) >= mode.commit_offset:
+                rules += mode.turn_back_cost * turn_backs(candidates.actions, goal)
+            if mode.blocks_set_out(robot, human):
                 rules += SET_OUT_COST * set_outs(candidates.actions, goal)
         return torch.as_tensor(rules, dtype=self.dtype, device=self.device)
 
@@ -291,20 +364,21 @@ class Planner:
         return scores, human
 
     def _screen(self, history: np.ndarray, candidates: Candidates, robot: torch.Tensor, human_present: torch.Tensor,
-                cost: Cost) -> torch.Tensor:
-        """Real-time stage 1: mean costs ``[C]`` of every candidate against :data:`SCREENING_SAMPLES`
-        human futures shared by the candidates with the same window-1 action, sampled conditioned on
-        the candidate that holds that action to the horizon."""
+                cost: Cost, risk: float) -> torch.Tensor:
+        """Real-time stage 1: costs ``[C]`` (judged with ``risk``, :func:`risk_cost`) of every
+        candidate against :data:`SCREENING_SAMPLES` human futures shared by the candidates with the
+        same window-1 action, sampled conditioned on the candidate that holds that action to the
+        horizon."""
         holding = np.arange(N_ACTIONS) * sum(N_ACTIONS ** w for w in range(WINDOWS - 1))  # [a, a, a, a] (action_sequences)
         self.human_model.prepare(history, candidates.states[holding])
         human = self._sample(torch.arange(N_ACTIONS, device=self.device), SCREENING_SAMPLES, human_present)
         # action_sequences orders the candidates by their window-1 action: [N_ACTIONS, C / N_ACTIONS] groups
         grouped = cost(robot.reshape(N_ACTIONS, -1, *robot.shape[1:]).unsqueeze(0), human.unsqueeze(2))
-        return risk_cost(grouped.reshape(len(grouped), -1), self.mode.risk)
+        return risk_cost(grouped.reshape(len(grouped), -1), risk)
 
     @torch.no_grad()
     def plan(self, history: np.ndarray, first_action: int, cost: Cost, budget: Budget | None = None,
-             deadline: float | None = None, keep_samples: int = 64) -> Plan:
+             deadline: float | None = None, keep_samples: int = 64, mode: Mode | None = None) -> Plan:
         """Plan from ``history [t+1, 2, 6]`` (robot, human states at steps 0..t, physical units)
         with window 0 fixed to ``first_action``.
 
@@ -315,7 +389,8 @@ class Planner:
         the measured rate (at most the budget's), else it screens every candidate (:meth:`_screen`);
         then stage 2 samples the finalists' own human futures in rounds until the time is spent (at
         most the budget's). ``keep_samples``: how many of the
-        chosen candidate's human futures the plan keeps. Bad arguments raise
+        chosen candidate's human futures the plan keeps; ``mode``: plan in this :class:`Mode`
+        instead of the planner's (its fallback, say). Bad arguments raise
         :class:`~trafficweaving.errors.InputError`: ``history`` must be finite with at least
         ``MIN_HISTORY`` steps, ``first_action`` an integer in ``0..N_ACTIONS-1``, ``deadline`` None
         or finite > 0.
@@ -327,8 +402,8 @@ class Planner:
         keep_samples = validate.integer("keep_samples", keep_samples, 0)
         left = (lambda: deadline - (time.perf_counter() - clock)) if deadline is not None else (lambda: np.inf)  # noqa: E731
         timings = {}
-        history, candidates, robot, human_present = self._situation(history, first_action)
-        rules = self._rules(candidates, history, cost)
+        history, mode, candidates, robot, human_present = self._situation(history, first_action, mode)
+        rules = self._rules(mode, candidates, history, cost)
         timings["candidates"] = time.perf_counter() - clock
         count = len(candidates)
 
@@ -338,11 +413,11 @@ class Planner:
             n1 = min(n1, int(self._rate() * OWN_FUTURES_SHARE * deadline) // count)
         screening = deadline is not None and n1 < 2
         if screening:
-            first_cost, n1 = self._screen(history, candidates, robot, human_present, cost), SCREENING_SAMPLES
+            first_cost, n1 = self._screen(history, candidates, robot, human_present, cost, mode.risk), SCREENING_SAMPLES
         else:
             self.human_model.prepare(history, candidates.states)
             scores = self._scores(torch.arange(count, device=self.device), robot, n1, human_present, cost)[0]
-            first_cost = risk_cost(scores, self.mode.risk)
+            first_cost = risk_cost(scores, mode.risk)
         first_cost = first_cost + rules
         timings["first_stage"] = time.perf_counter() - clock - sum(timings.values())
 
@@ -365,7 +440,7 @@ class Planner:
             rounds.append(scores)
             used += n
             kept.append(human)
-        second_cost = (risk_cost(torch.cat(rounds), self.mode.risk) + rules[finalists] if used
+        second_cost = (risk_cost(torch.cat(rounds), mode.risk) + rules[finalists] if used
                        else first_cost[finalists])
         best = int(torch.argmin(second_cost))
         index = int(finalists[best])
@@ -377,7 +452,7 @@ class Planner:
             first_stage_cost=first_cost.cpu().numpy(), finalists=finalists.cpu().numpy(),
             second_stage_cost=second_cost.cpu().numpy(), human=human.cpu().double().numpy(),
             futures=futures, seconds=time.perf_counter() - clock,
-            first_stage_samples=n1, second_stage_samples=used, timings=timings)
+            first_stage_samples=n1, second_stage_samples=used, mode=mode, timings=timings)
 
     @torch.no_grad()
     def score(self, history: np.ndarray, first_action: int, cost: Cost, indices, samples: int) -> tuple[np.ndarray, np.ndarray]:
@@ -389,12 +464,12 @@ class Planner:
         check_cost(cost)
         indices = validate.indices("indices", indices, N_CANDIDATES)
         samples = validate.integer("samples", samples, 1)
-        history, candidates, robot, human_present = self._situation(history, first_action)
+        history, mode, candidates, robot, human_present = self._situation(history, first_action, None)
         self.human_model.prepare(history, candidates.states[indices])
         chosen = torch.as_tensor(indices, device=self.device)
         scores, human = self._scores(torch.arange(len(chosen), device=self.device), robot[chosen], samples,
                                      human_present, cost)
-        total = risk_cost(scores, self.mode.risk) + self._rules(candidates, history, cost)[chosen]
+        total = risk_cost(scores, mode.risk) + self._rules(mode, candidates, history, cost)[chosen]
         return total.cpu().double().numpy(), human.cpu().double().numpy()
 
     def _rate(self) -> float:

@@ -30,7 +30,7 @@ from ..scenario import CAR_LENGTH, COLLISION_DY, DT, LANE_CENTRE_Y, LANES, ROAD_
 from .world import Agent
 
 PLANNER_MODES = {"planner": "decisive", "planner-paper": "paper", "planner-comfort": "comfort",
-                 "planner-cautious": "cautious", "planner-cv": "decisive"}
+                 "planner-comfort-first": "comfort-first", "planner-cautious": "cautious", "planner-cv": "decisive"}
 """The planning robots and their planner's mode (:data:`~trafficweaving.planning.planner.MODES`):
 the default ``planner`` is decisive (docs/closed_loop.md); ``planner-paper`` is the paper's exactly."""
 ROBOT_SPECS = (*PLANNER_MODES, "rules")
@@ -197,6 +197,8 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
       no setting out beside the human);
     * ``planner-paper``: the same in the paper's mode exactly;
     * ``planner-comfort``: decisive, with candidates that keep to nuPlan's comfort limits;
+    * ``planner-comfort-first``: ``planner-comfort`` until the robot has not set out 2.0 s before
+      the cutoff, or 3.0 s before it in a stand-off, then ``planner`` to the end of the episode;
     * ``planner-cautious``: decisive, judging its candidates by CVaR (the worst 20 % of the futures);
     * ``planner-cv``: the decisive planner against :class:`ConstantVelocityHuman` (``model`` unused);
     * ``rules``: :class:`RuleBasedRobot` (``model``, ``deadline``, ``budget`` unused).
