@@ -86,11 +86,12 @@ class Mode:
                              f"{self.turn_back_cost}, {self.commit_offset}, {self.set_out_gap}, {self.fallback_within}, "
                              f"{self.standoff_within}, {self.risk}, {self.set_out_until}, {self.fallback!r}")
 
-    def blocks_set_out(self, robot: np.ndarray, human: np.ndarray) -> bool:
+    def blocks_set_out(self, robot: np.ndarray, human: np.ndarray, after: float = 0.0) -> bool:
         """Whether the set-out rule holds the robot in its lane, from both cars' present states
         ``robot [6]``, ``human [6]``: the human would be less than ``set_out_gap`` ahead or behind at
-        any of :attr:`set_out_times`, both keeping their speeds, and is not in the robot's lane."""
-        crossing_gaps = robot[0] - human[0] + (robot[2] - human[2]) * self.set_out_times
+        any of :attr:`set_out_times`, both keeping their speeds, and is not in the robot's lane;
+        with ``after`` (s), whether it would still hold the robot that much later."""
+        crossing_gaps = robot[0] - human[0] + (robot[2] - human[2]) * (after + self.set_out_times)
         return bool(np.abs(crossing_gaps).min() < self.set_out_gap and abs(robot[1] - human[1]) >= CAR_WIDTH)
 
     def needs_fallback(self, robot: np.ndarray, human: np.ndarray, first_action: int, goal_y: float | None) -> bool:
@@ -115,9 +116,8 @@ class Mode:
             return True
         if seconds_to_cutoff >= self.standoff_within:
             return False
-        ahead = seconds_to_cutoff - self.fallback_within  # s until fallback_within are left
-        later = [car + np.array([car[2] * ahead, 0, 0, 0, 0, 0]) for car in (robot, human)]
-        return self.blocks_set_out(robot, human) and self.blocks_set_out(*later)
+        return (self.blocks_set_out(robot, human)
+                and self.blocks_set_out(robot, human, after=seconds_to_cutoff - self.fallback_within))
 
     @property
     def set_out_times(self) -> np.ndarray:
