@@ -19,8 +19,8 @@ from trafficweaving.planning.candidates import (ACCELERATIONS, MOTIONS, N_ACTION
                                                 action_sequences, robot_candidates, rollout)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
-from trafficweaving.planning.planner import (MODES, OWN_FUTURES_SHARE, SCREENING_SAMPLES, SET_OUT_COST, Budget, Mode, Planner,
-                                             example_history, risk_cost, set_outs, turn_backs)
+from trafficweaving.planning.planner import (MODES, OWN_FUTURES_SHARE, SCREENING_SAMPLES, SET_OUT_COST, SHORTLIST, Budget,
+                                             Mode, Planner, example_history, risk_cost, set_outs, turn_backs)
 from trafficweaving.planning.steering import jerk_limited_steer, optimal_time, steer, steering_cost
 from trafficweaving.scenario import CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.sim.world import World
@@ -581,11 +581,48 @@ def test_real_time_stage_1_samples_every_candidates_own_futures_where_two_each_f
     planner.rows_per_second = 2.05 * N_CANDIDATES / (OWN_FUTURES_SHARE * 0.3)  # two each fit in 0.3 s
     plan = planner.plan(history, fixed, PaperCost(goal_y=LEFT), deadline=0.3)
     assert plan.first_stage_samples == 2 and len(human.prepared[0]) == N_CANDIDATES  # own futures, no screening
-    assert len(human.prepared) == 1 and plan.futures == 2 * N_CANDIDATES + plan.second_stage_samples * 32
+    assert len(human.prepared) == 1 and plan.futures == (2 * N_CANDIDATES + plan.shortlist_samples * SHORTLIST
+                                                        + plan.second_stage_samples * 32)
     human.prepared.clear()
     planner.rows_per_second = 1.9 * N_CANDIDATES / (OWN_FUTURES_SHARE * 0.3)  # fewer than two: screening
     plan = planner.plan(history, fixed, PaperCost(goal_y=LEFT), deadline=0.3)
     assert plan.first_stage_samples == SCREENING_SAMPLES and len(human.prepared[0]) == N_ACTIONS
+
+
+class _NoisyHuman(_RecordingHuman):
+    """Random longitudinal accelerations (m/s², standard deviation 2), keeping every draw
+    (candidate indices, accelerations)."""
+
+    def __init__(self):
+        super().__init__()
+        self.draws, self.rng = [], torch.Generator().manual_seed(0)
+
+    def sample(self, candidates, n, generator=None):
+        accelerations = super().sample(candidates, n, generator).clone()
+        accelerations[..., 0] = 2.0 * torch.randn(accelerations.shape[:-1], generator=self.rng)
+        self.draws.append((torch.as_tensor(candidates).clone(), accelerations))
+        return accelerations
+
+
+def test_real_time_finalists_are_the_best_of_the_shortlist_by_all_their_samples():
+    human, history, fixed, cost = _NoisyHuman(), _history(), Action.of(0.0, "right").index, PaperCost(goal_y=LEFT)
+    planner = Planner(human)
+    planner.rows_per_second = 2.05 * N_CANDIDATES / (OWN_FUTURES_SHARE * 2.0)  # two each fit in 2 s
+    plan = planner.plan(history, fixed, cost, deadline=2.0)
+    (everyone, first), (shortlist, more), *_ = human.draws
+    assert plan.first_stage_samples == 2 and len(everyone) == N_CANDIDATES
+    assert plan.shortlist_samples == len(more) >= 1
+    assert set(shortlist.tolist()) == set(np.argsort(plan.first_stage_cost)[:SHORTLIST].tolist())
+    present = torch.as_tensor(history[-1, 1], dtype=torch.float32)
+    robot = torch.as_tensor(plan.candidates.states[shortlist.numpy()], dtype=torch.float32)
+    costs = cost(robot.unsqueeze(0), future_states(present, torch.cat([first[:, shortlist], more]))).mean(0)
+    assert set(plan.finalists.tolist()) == set(shortlist[torch.topk(costs, 32, largest=False).indices].tolist())
+    assert plan.futures == 2 * N_CANDIDATES + plan.shortlist_samples * SHORTLIST + plan.second_stage_samples * 32
+    full = planner.plan(history, fixed, cost, budget=Budget(2, 32, 4))  # the paper's stages: no shortlist
+    assert full.shortlist_samples == 0 and full.futures == 2 * N_CANDIDATES + 4 * 32
+    planner.rows_per_second = 2.05 * N_CANDIDATES / (OWN_FUTURES_SHARE * 1e-4)  # own futures, no time left after
+    late = planner.plan(history, fixed, cost, deadline=1e-4)
+    assert late.first_stage_samples >= 2 and late.shortlist_samples == 0 and late.second_stage_samples >= 1
 
 
 def test_screening_is_exact_for_a_human_that_ignores_the_robot():

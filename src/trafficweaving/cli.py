@@ -495,7 +495,8 @@ def cmd_bench(args) -> None:
     seconds = [p.seconds for p in plans]
     payload = {"futures": min(p.futures for p in plans), "seconds": statistics.median(seconds),
                "seconds_all": [round(s, 4) for s in seconds], "candidates": len(plans[0].candidates),
-               "first_stage_samples": plans[0].first_stage_samples, "finalists": len(plans[0].finalists),
+               "first_stage_samples": plans[0].first_stage_samples, "shortlist_samples": plans[0].shortlist_samples,
+               "finalists": len(plans[0].finalists),
                "second_stage_samples": plans[0].second_stage_samples, "deadline": args.deadline,
                "device": str(device), "threads": torch.get_num_threads(), "model": args.model,
                "precision": human_model.precision,

@@ -10,8 +10,10 @@ sampling in bfloat16 or float32 would score each candidate against one sample, o
 them), it screens: the candidates that share their first free window's action share
 :data:`SCREENING_SAMPLES` human futures, sampled conditioned on the candidate that holds that action
 (8 conditionings instead of 4096); the finalists are then re-scored against their own futures, as
-in the paper. The human is any :class:`HumanModel` (the CVAE's is
-:class:`~trafficweaving.model.predictor.HumanPredictor`).
+in the paper. Where stage 1 sampled own futures, the :data:`SHORTLIST` best get more of them before
+the finalists are chosen (:data:`SHORTLIST_SHARE` of the time left): with two or three samples per
+candidate, the full budget's choice is often not among the finalists. The human is any
+:class:`HumanModel` (the CVAE's is :class:`~trafficweaving.model.predictor.HumanPredictor`).
 """
 
 from __future__ import annotations
@@ -37,6 +39,12 @@ OWN_FUTURES_SHARE = 0.4
 """Real-time mode: the share of the deadline stage 1 may spend sampling every candidate's own human
 futures. Where at least two per candidate fit in it at the measured sampling rate, stage 1 samples
 them (the paper's stage 1 with fewer samples), else it screens (docs/planner.md, Real-time mode)."""
+SHORTLIST = 256
+"""Real-time mode, where stage 1 sampled every candidate's own futures: how many of the best get more
+samples of their own before the finalists are chosen from them (docs/planner.md, Shortlist)."""
+SHORTLIST_SHARE = 1 / 3
+"""Real-time mode: the share of the time left after stage 1 that the :data:`SHORTLIST` samples
+may take (the rest goes to stage 2)."""
 
 
 @dataclass(frozen=True)
@@ -267,8 +275,9 @@ class Plan:
     ``candidates`` (all robot futures), ``first_stage_cost [C]`` (the mode's cost, :class:`Mode`),
     ``finalists [k]`` and ``second_stage_cost [k]``, ``human [n, 15, 6]`` sampled human futures
     for the chosen candidate, ``futures`` (human futures simulated), ``seconds``, and
-    ``first_stage_samples`` / ``second_stage_samples`` actually used, and the ``mode`` it planned in
-    (the planner's, or the one :meth:`Planner.plan` was given)."""
+    ``first_stage_samples`` / ``shortlist_samples`` (real time: the more samples each of the
+    :data:`SHORTLIST` got; 0: none) / ``second_stage_samples`` actually used, and the ``mode`` it
+    planned in (the planner's, or the one :meth:`Planner.plan` was given)."""
 
     actions: np.ndarray
     index: int
@@ -281,6 +290,7 @@ class Plan:
     futures: int
     seconds: float
     first_stage_samples: int
+    shortlist_samples: int
     second_stage_samples: int
     mode: Mode
     timings: dict = field(default_factory=dict)
@@ -387,8 +397,10 @@ class Planner:
         ``deadline`` (s), the plan returns within it (once stage 1 is done): stage 1 samples each
         candidate's own futures where two or more fit in :data:`OWN_FUTURES_SHARE` of the deadline at
         the measured rate (at most the budget's), else it screens every candidate (:meth:`_screen`);
-        then stage 2 samples the finalists' own human futures in rounds until the time is spent (at
-        most the budget's). ``keep_samples``: how many of the
+        after own futures, the :data:`SHORTLIST` best get more samples of their own
+        (:data:`SHORTLIST_SHARE` of the time left) and the finalists are the best of them by all their
+        samples; then stage 2 samples the finalists' own human futures in rounds until the time is
+        spent (at most the budget's). ``keep_samples``: how many of the
         chosen candidate's human futures the plan keeps; ``mode``: plan in this :class:`Mode`
         instead of the planner's (its fallback, say). Bad arguments raise
         :class:`~trafficweaving.errors.InputError`: ``history`` must be finite with at least
@@ -421,9 +433,19 @@ class Planner:
         first_cost = first_cost + rules
         timings["first_stage"] = time.perf_counter() - clock - sum(timings.values())
 
-        # stage 2: the finalists, n2 samples of their own each, in rounds while time allows (one at least)
-        k = budget.finalists
+        # the finalists; in real time after own futures, the best of a shortlist given more samples
+        k, n_short = budget.finalists, 0
         finalists = torch.topk(first_cost, k, largest=False).indices
+        if deadline is not None and not screening and k < SHORTLIST < count:
+            n_short = max(int(self._rate() * SHORTLIST_SHARE * left()) // SHORTLIST, 0)
+            if n_short:
+                shortlist = torch.topk(first_cost, SHORTLIST, largest=False).indices
+                more = self._scores(shortlist, robot[shortlist], n_short, human_present, cost)[0]
+                shortlist_cost = risk_cost(torch.cat([scores[:, shortlist], more]), mode.risk) + rules[shortlist]
+                finalists = shortlist[torch.topk(shortlist_cost, k, largest=False).indices]
+            timings["shortlist"] = time.perf_counter() - clock - sum(timings.values())
+
+        # stage 2: the finalists, n2 samples of their own each, in rounds while time allows (one at least)
         if screening:
             self.human_model.prepare(history, candidates.states[finalists.cpu().numpy()])
             prepared = torch.arange(k, device=self.device)
@@ -446,13 +468,13 @@ class Planner:
         index = int(finalists[best])
         human = torch.cat(kept, 0)[:keep_samples, best] if kept else torch.zeros((0, HORIZON, len(STATE_NAMES)))
         timings["second_stage"] = time.perf_counter() - clock - sum(timings.values())
-        futures = (N_ACTIONS if screening else count) * n1 + used * k
+        futures = (N_ACTIONS if screening else count) * n1 + n_short * SHORTLIST + used * k
         return Plan(
             actions=candidates.actions[index], index=index, robot=candidates.states[index], candidates=candidates,
             first_stage_cost=first_cost.cpu().numpy(), finalists=finalists.cpu().numpy(),
             second_stage_cost=second_cost.cpu().numpy(), human=human.cpu().double().numpy(),
             futures=futures, seconds=time.perf_counter() - clock,
-            first_stage_samples=n1, second_stage_samples=used, mode=mode, timings=timings)
+            first_stage_samples=n1, shortlist_samples=n_short, second_stage_samples=used, mode=mode, timings=timings)
 
     @torch.no_grad()
     def score(self, history: np.ndarray, first_action: int, cost: Cost, indices, samples: int) -> tuple[np.ndarray, np.ndarray]:
