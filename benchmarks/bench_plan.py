@@ -20,7 +20,10 @@ Measured in one run, same process, same model:
   samples; also relative to the spread of expected costs over the candidates), over
   ``--realtime-plans`` real-time plans per situation, and, as the noise floor, the same for a second
   full-budget plan with another seed;
-  the same two figures for full-budget plans in bfloat16 and in int8.
+  the same two figures for full-budget plans in bfloat16 and in int8; and how often the real-time
+  plan's first free window equals that of a full-budget plan sampled in the real-time mode's
+  precision (``--realtime-precision``), with, as that precision's noise floor, the same for two
+  such full-budget plans with different seeds.
 
     python benchmarks/bench_plan.py [--threads N] [--situations 18] [--deadline 0.3] [--model default]
                                     [--episodes SIMULATE_OUT_DIR] [--realtime-plans 1]
@@ -204,7 +207,7 @@ def main() -> None:
     print(json.dumps(report), flush=True)
 
     agree, regret, agree_full, regret_full, agree_bf16, regret_bf16, late, spread = [], [], [], [], [], [], [], []
-    agree_int8, regret_int8 = [], []
+    agree_int8, regret_int8, agree_same, agree_same_full = [], [], [], []
     realtime = Planner(HumanPredictor(model, precision=args.realtime_precision, common_random_numbers=common), budget,
                        seed=1)
     realtime.plan(history, first, cost, deadline=args.deadline)  # warm-up: measures its speed
@@ -213,11 +216,15 @@ def main() -> None:
         full = Planner(exact, budget, seed=100 + k).plan(hist, fixed, c)
         other = Planner(exact, budget, seed=200 + k).plan(hist, fixed, c)
         reference = expected_cost(planner, hist, fixed, c, full.index)
+        same, same_other = (Planner(realtime.human_model, budget, seed=seed + k).plan(hist, fixed, c)
+                            for seed in (500, 600))
+        agree_same_full.append(same_other.actions[1] == same.actions[1])
         for _ in range(args.realtime_plans):
             rt = realtime.plan(hist, fixed, c, deadline=args.deadline)
             late.append(rt.seconds)
             spread.append(float(np.std(full.first_stage_cost)))  # how much candidates differ here
             agree.append(rt.actions[1] == full.actions[1])
+            agree_same.append(rt.actions[1] == same.actions[1])
             regret.append(expected_cost(planner, hist, fixed, c, rt.index) - reference)
         agree_full.append(other.actions[1] == full.actions[1])
         regret_full.append(expected_cost(planner, hist, fixed, c, other.index) - reference)
@@ -240,6 +247,8 @@ def main() -> None:
         "bfloat16_regret_mean": round(float(np.mean(regret_bf16)), 2),
         "int8_agreement": round(float(np.mean(agree_int8)), 3),
         "int8_regret_mean": round(float(np.mean(regret_int8)), 2),
+        "same_precision_agreement": round(float(np.mean(agree_same)), 3),
+        "same_precision_full_vs_full_agreement": round(float(np.mean(agree_same_full)), 3),
     }
     print(json.dumps(report))
 
