@@ -215,23 +215,25 @@ def main() -> None:
     for k, (hist, fixed, c) in enumerate(chosen):
         full = Planner(exact, budget, seed=100 + k).plan(hist, fixed, c)
         other = Planner(exact, budget, seed=200 + k).plan(hist, fixed, c)
+        lower = Planner(low, budget, seed=300 + k).plan(hist, fixed, c)
+        coarse = Planner(quantised.human_model, budget, seed=400 + k).plan(hist, fixed, c)
         reference = expected_cost(planner, hist, fixed, c, full.index)
-        same, same_other = (Planner(realtime.human_model, budget, seed=seed + k).plan(hist, fixed, c)
-                            for seed in (500, 600))
+        # the full budget in the real-time precision, and a second such plan (that precision's noise floor)
+        same = {"float32": full, "bfloat16": lower, "int8": coarse}[realtime.human_model.precision]
+        same_other = other if same is full else Planner(realtime.human_model, budget, seed=500 + k).plan(hist, fixed, c)
         agree_same_full.append(same_other.actions[1] == same.actions[1])
+        situation_spread = float(np.std(full.first_stage_cost))  # how much candidates differ here
         for _ in range(args.realtime_plans):
             rt = realtime.plan(hist, fixed, c, deadline=args.deadline)
             late.append(rt.seconds)
-            spread.append(float(np.std(full.first_stage_cost)))  # how much candidates differ here
+            spread.append(situation_spread)
             agree.append(rt.actions[1] == full.actions[1])
             agree_same.append(rt.actions[1] == same.actions[1])
             regret.append(expected_cost(planner, hist, fixed, c, rt.index) - reference)
         agree_full.append(other.actions[1] == full.actions[1])
         regret_full.append(expected_cost(planner, hist, fixed, c, other.index) - reference)
-        lower = Planner(low, budget, seed=300 + k).plan(hist, fixed, c)
         agree_bf16.append(lower.actions[1] == full.actions[1])
         regret_bf16.append(expected_cost(planner, hist, fixed, c, lower.index) - reference)
-        coarse = Planner(quantised.human_model, budget, seed=400 + k).plan(hist, fixed, c)
         agree_int8.append(coarse.actions[1] == full.actions[1])
         regret_int8.append(expected_cost(planner, hist, fixed, c, coarse.index) - reference)
     report["realtime"] = {
