@@ -6,6 +6,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from trafficweaving.dynamics import future_states, integrate_trapezoid
 from trafficweaving.errors import InputError
@@ -19,10 +21,11 @@ from trafficweaving.planning.candidates import (ACCELERATIONS, MOTIONS, N_ACTION
                                                 action_sequences, robot_candidates, rollout)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
-from trafficweaving.planning.planner import (MODES, OWN_FUTURES_SHARE, SCREENING_SAMPLES, SET_OUT_COST, SHORTLIST, Budget,
-                                             Mode, Planner, example_history, risk_cost, set_outs, turn_backs)
+from trafficweaving.planning.planner import (FOLLOW_COST, FOLLOW_LATERAL, MODES, OWN_FUTURES_SHARE, SCREENING_SAMPLES,
+                                             SET_OUT_COST, SHORTLIST, Budget, Mode, Planner, example_history, risk_cost,
+                                             set_outs, stopping_shortfall, turn_backs)
 from trafficweaving.planning.steering import jerk_limited_steer, optimal_time, steer, steering_cost
-from trafficweaving.scenario import CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y
+from trafficweaving.scenario import COLLISION_DX, CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.sim.world import World
 
 LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
@@ -438,6 +441,82 @@ def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_w
     sequences = np.array([lanes("right", "left", "left", "left", "left"), lanes("left", "left", "left", "left", "left"),
                           lanes("right", "right", "left", "left", "left"), lanes("left", "right", "left", "right", "left")])
     assert set_outs(sequences, "left").tolist() == [True, False, False, False]
+
+
+def _shortfall_by_simulation(robot, states, human, human_braking, motion, dt=1e-3):
+    """:func:`stopping_shortfall` of one candidate ``states [15, 6]`` the long way: both cars'
+    speeds integrated on a fine time grid, the gap checked at each step where the robot is in the
+    human's way and, braking, at every point after the horizon if it still is."""
+    if human[0] <= robot[0]:
+        return 0.0
+    b_h, b_r = max(human_braking, -human[4]), -min(motion.accelerations)
+    t = np.arange(0.0, 30.0, dt)
+    human_x = human[0] + np.concatenate([[0.0], np.cumsum(dt * np.maximum(human[2] - b_h * (t[:-1] + dt / 2), 0.0))])
+    in_way = np.abs(states[:, 1] - human[1]) < FOLLOW_LATERAL
+    gaps = [human_x[round(k * DT / dt)] - states[k - 1, 0] - COLLISION_DX for k in range(1, 7) if in_way[k - 1]]
+    delay = 0.0 if motion.jerk is None else max(states[5, 4] + b_r, 0.0) / (2 * motion.jerk)
+    braking = t >= 0.6 - dt / 2
+    s = t[braking] - t[braking][0]
+    v = max(states[5, 2], 0.0)  # braking to a stop, not reversing
+    speed = np.where(s < delay, v, np.maximum(v - b_r * (s - delay), 0.0))
+    robot_x = states[5, 0] + np.concatenate([[0.0], np.cumsum(dt * (speed[1:] + speed[:-1]) / 2)])
+    gap = human_x[braking] - robot_x - COLLISION_DX
+    gaps += [gap[round((k * DT - 0.6) / dt)] for k in range(6, 16) if in_way[k - 1]]
+    if in_way[-1]:
+        gaps.append(gap[s >= 0.9 - dt / 2].min())
+    return max(-min(gaps, default=np.inf), 0.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(gap=st.floats(-2.0, 30.0), robot_speed=st.floats(0.0, 35.0), human_speed=st.floats(0.0, 35.0),
+       human_acceleration=st.floats(-9.0, 2.0), offset=st.floats(-5.0, 5.0), first=st.integers(0, 7),
+       motion=st.sampled_from(["settled", "comfort"]))
+def test_the_stopping_shortfall_is_the_least_gap_of_both_cars_braking(gap, robot_speed, human_speed, human_acceleration,
+                                                                      offset, first, motion):
+    """The closed form (the least gap at the ends of the speeds' pieces or where they are equal)
+    against both cars braked on a 1 ms grid, for candidates moving as each motion."""
+    motion = MOTIONS[motion]
+    robot = np.array([0.0, RIGHT, robot_speed, 0.0, 0.0, 0.0])
+    human = np.array([gap, RIGHT + offset, human_speed, 0.0, human_acceleration, 0.0])
+    candidates = robot_candidates(robot, first, motion).states[::97]
+    short = stopping_shortfall(robot, candidates, human, 6.0, motion)
+    expected = [_shortfall_by_simulation(robot, c, human, 6.0, motion) for c in candidates]
+    np.testing.assert_allclose(short, expected, atol=0.03)
+
+
+def test_the_following_rule_keeps_a_gap_the_robot_can_stop_in():
+    """A human 20 m ahead in the robot's lane, both at 20 m/s: holding the speed leaves room to stop
+    behind it braking at 6 m/s² (0.6 s and a car length: 16.5 m), not once it brakes at 8 m/s²;
+    braking harder in window 1 comes shorter by less;
+    the rule is silent for a human behind or in the other lane, and the planner's rule cost is
+    FOLLOW_COST per metre."""
+    mode = MODES["decisive"]
+    robot = np.array([0.0, RIGHT, 20.0, 0.0, 0.0, 0.0])
+    cruising = robot + [20.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    braking = cruising + [0.0, 0.0, 0.0, 0.0, -8.0, 0.0]
+    in_lane = [Action.of(a, "right").index for a in ACCELERATIONS]
+    sequences = np.array([[in_lane[0], a, a, a, a] for a in in_lane])  # window 1 at 0, 4, -3, -6 m/s², held
+    states = rollout(robot, sequences, mode.motion)
+    held, faster, slower, hardest = stopping_shortfall(robot, states, braking, mode.follow_braking, mode.motion)
+    assert held > 0 and faster > held > slower > hardest
+    assert stopping_shortfall(robot, states[:1], cruising, mode.follow_braking, mode.motion)[0] == 0.0
+    behind = braking - [40.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    other_lane = braking + [0.0, LEFT - RIGHT, 0.0, 0.0, 0.0, 0.0]
+    for human in (behind, other_lane):
+        np.testing.assert_array_equal(stopping_shortfall(robot, states, human, mode.follow_braking, mode.motion), 0.0)
+    ramped = stopping_shortfall(robot, states, braking, mode.follow_braking, MOTIONS["comfort"])
+    assert ramped[0] > held  # the comfort motion's braking ramps up at its jerk limit: it needs more room
+
+    history = np.repeat(np.stack([robot, braking])[None], 6, axis=0)
+    history[:, :, 0] += 20.0 * DT * np.arange(-5, 1)[:, None]
+    keep, cost = in_lane[0], GoalToyCost(RIGHT)
+    ruled = Planner(ToyHuman(), seed=0, mode=mode).plan(history, keep, cost)
+    plain = Planner(ToyHuman(), seed=0, mode=replace(mode, follow_braking=0.0)).plan(history, keep, cost)
+    expected = FOLLOW_COST * stopping_shortfall(robot, ruled.candidates.states, braking, mode.follow_braking, mode.motion)
+    np.testing.assert_allclose(ruled.first_stage_cost - plain.first_stage_cost, expected, rtol=1e-5, atol=0.1)
+    assert Action(int(ruled.actions[1])).acceleration == -6.0  # toy_cost alone prefers 4 m/s² in every window
+    with pytest.raises(InputError):
+        Mode(follow_braking=-1.0)
 
 
 def test_the_set_out_rule_watches_the_gap_while_each_modes_lane_change_crosses_the_divider():

@@ -82,9 +82,12 @@ def test_near_collision_without_collision():
 
 
 def test_off_road():
-    """The robot leaves the road while changing lane: no success."""
+    """The robot leaves the road while changing lane: no success, its own part failed too; the
+    human leaves it: no success, but the robot did its part."""
     m = metrics(car(START_X + 10, 30, LEFT, -9.0, change=(15, 40)), car(START_X, 30, RIGHT, LEFT))
-    assert m["outcome"] == "off_road" and not m["success"] and m["robot_swapped"]
+    assert m["outcome"] == "off_road" and not m["success"] and m["robot_swapped"] and not m["robot_success"]
+    m = metrics(car(START_X + 10, 30, LEFT, RIGHT), car(START_X, 30, RIGHT, -0.5))
+    assert m["outcome"] == "off_road" and not m["success"] and m["robot_swapped"] and m["robot_success"]
 
 
 def test_late_swap():
@@ -216,6 +219,7 @@ def test_aggregate_breakdown():
     old_log = [{**r, "metrics": {k: v for k, v in r["metrics"].items() if k != "robot_at_fault"}} for r in records]
     assert aggregate(old_log)["robot_at_fault_collisions"] is None  # unknown, not "not at fault"
     assert s["success_rate"]["count"] == 2 and s["success_rate"]["ci95"] == wilson_interval(2, 3)
+    assert s["robot_success_rate"]["count"] == 2 and not crash["robot_success"] and good["robot_success"]
     assert s["outcomes"]["valid"] == 2 and s["outcomes"]["collision"] == 1
     assert s["planner_latency_s"]["plans"] == 3 and s["planner_latency_s"]["median"] == pytest.approx(0.2)
     assert s["deadline_misses"] == 1

@@ -28,8 +28,10 @@ import torch
 from .. import validate
 from ..dynamics import future_states
 from ..errors import InputError
-from ..scenario import CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
-from .candidates import MOTIONS, N_ACTIONS, N_CANDIDATES, WINDOWS, Action, Candidates, Motion, robot_candidates
+from ..scenario import (CAR_WIDTH, COLLISION_DX, COLLISION_DY, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANES,
+                        STATE_NAMES, lane_of)
+from .candidates import (MOTIONS, N_ACTIONS, N_CANDIDATES, STEPS_PER_WINDOW, WINDOWS, Action, Candidates, Motion,
+                         robot_candidates)
 from .costs import Cost
 
 
@@ -65,6 +67,13 @@ class Mode:
     (:func:`set_outs`) costs :data:`SET_OUT_COST`: the robot does not start a lane change beside
     the human (0: it may, the paper's). ``set_out_until``: about half a second after the
     ``motion``'s lane change, set out in window 1, takes the robot's body clear of the divider.
+    ``follow_braking``: the following rule (:func:`stopping_shortfall`): while the human is ahead
+    and in the robot's way (within :data:`FOLLOW_LATERAL` m sideways of where the candidate takes
+    the robot), a candidate costs :data:`FOLLOW_COST` per metre by which the robot, braking as hard
+    as its ``motion`` can from the end of window 1 (when the next plan can first brake) and steering
+    as the candidate does, would come short of stopping behind the human braking at
+    ``follow_braking`` m/s² from now (or as hard as it brakes now, if harder): the robot keeps a gap
+    it can stop in, or steers out of the way (0: no rule, the paper's).
     ``fallback``: the mode a receding-horizon policy plans in (None: none) from the first plan where
     the robot has not set out for the goal lane and would reach the cutoff within
     ``fallback_within`` s at its present speed, or within ``standoff_within`` s in a stand-off
@@ -81,18 +90,20 @@ class Mode:
     fallback: Mode | None = None
     fallback_within: float = 0.0
     standoff_within: float = 0.0
+    follow_braking: float = 0.0
 
     def __post_init__(self):
         non_negative = (self.turn_back_cost, self.commit_offset, self.set_out_gap, self.fallback_within,
-                        self.standoff_within)
+                        self.standoff_within, self.follow_braking)
         if (not all(v >= 0 and np.isfinite(v) for v in non_negative) or not 0 < self.risk <= 1
                 or not SET_OUT_FROM < self.set_out_until < np.inf
                 or not (self.fallback is None or isinstance(self.fallback, Mode) and self.fallback.fallback is None)):
-            raise InputError(f"a planner mode needs turn_back_cost, commit_offset, set_out_gap, fallback_within and "
-                             f"standoff_within finite and >= 0, 0 < risk <= 1, set_out_until finite and > "
-                             f"{SET_OUT_FROM} and a fallback that is None or a Mode without a fallback of its own, got "
-                             f"{self.turn_back_cost}, {self.commit_offset}, {self.set_out_gap}, {self.fallback_within}, "
-                             f"{self.standoff_within}, {self.risk}, {self.set_out_until}, {self.fallback!r}")
+            raise InputError(f"a planner mode needs turn_back_cost, commit_offset, set_out_gap, fallback_within, "
+                             f"standoff_within and follow_braking finite and >= 0, 0 < risk <= 1, set_out_until "
+                             f"finite and > {SET_OUT_FROM} and a fallback that is None or a Mode without a fallback of "
+                             f"its own, got {self.turn_back_cost}, {self.commit_offset}, {self.set_out_gap}, "
+                             f"{self.fallback_within}, {self.standoff_within}, {self.follow_braking}, {self.risk}, "
+                             f"{self.set_out_until}, {self.fallback!r}")
 
     def blocks_set_out(self, robot: np.ndarray, human: np.ndarray, after: float = 0.0) -> bool:
         """Whether the set-out rule holds the robot in its lane, from both cars' present states
@@ -155,6 +166,18 @@ SET_OUT_COST = 100_000.0
 """Cost of setting out with the human closer than a mode's ``set_out_gap``: more than a sampled
 future's collision costs can add up to (1000 · 9.25 at each of 15 steps discounted by 0.9: about
 66,000), so it acts as a rule."""
+FOLLOW_COST = 100_000.0
+"""Cost per metre by which a candidate would come short of stopping behind the human
+(:func:`stopping_shortfall`): a rule, as :data:`SET_OUT_COST`; where every candidate comes short,
+the one short by least (braking hardest, or steering clear) is best."""
+FOLLOW_LATERAL = COLLISION_DY + 0.5
+"""How close sideways (m, centre to centre) the human, held where it is, is in the robot's way
+(:func:`stopping_shortfall`): the collision rule's 1.8 m and half a metre for the human's sideways
+motion in the next 0.6 s."""
+DECISIVE_FOLLOW_BRAKING = 6.0
+"""The human's braking (m/s²) the decisive modes keep a gap to stop behind: their own hardest."""
+COMFORT_FOLLOW_BRAKING = 4.0
+"""The human's braking (m/s²) the comfort mode keeps a gap to stop behind: its own hardest."""
 STANDOFF_WITHIN = 3.0
 """How long (s) before the cutoff a ``comfort-first`` robot that has not set out falls back on the
 decisive mode in a stand-off: while the set-out rule holds it in its lane and, both cars keeping
@@ -166,8 +189,10 @@ decisive mode (:meth:`Mode.needs_fallback`). Set out a window later, the comfort
 change would take the robot across the swap line (1.4 s from rest) 0.3 s before the cutoff, the
 decisive one's (1.0 s) 0.7 s before it: a little time for the decisive robot to get clear of the
 human first (docs/closed_loop.md)."""
-_DECISIVE = Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP)
-_COMFORT = Mode(MOTIONS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP, set_out_until=2.5)
+_DECISIVE = Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP,
+                 follow_braking=DECISIVE_FOLLOW_BRAKING)
+_COMFORT = Mode(MOTIONS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP, set_out_until=2.5,
+                follow_braking=COMFORT_FOLLOW_BRAKING)
 MODES = {
     "paper": Mode(),
     "decisive": _DECISIVE,
@@ -177,7 +202,8 @@ MODES = {
                              standoff_within=STANDOFF_WITHIN),
 }
 """The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once under way,
-does not start one beside the human, settles on the lane centre); ``comfort`` (the same within
+does not start one beside the human, settles on the lane centre, keeps a gap it can stop in behind
+the human); ``comfort`` (the same within
 nuPlan's comfort limits, with longer lane changes and so a longer look at the gap before setting
 out); ``cautious`` (decisive, judged by the worst 20 % of its sampled futures: CVaR_0.2);
 ``comfort-first`` (comfort, falling back on decisive when the robot has not set out
@@ -210,6 +236,57 @@ def set_outs(actions: np.ndarray, goal: str) -> np.ndarray:
     window 0 (the one being executed) does not ``[C]``: the plan starts a lane change now."""
     targets = _targets(actions, goal)
     return ~targets[:, 0] & targets[:, 1]
+
+
+def stopping_shortfall(robot: np.ndarray, states: np.ndarray, human: np.ndarray, human_braking: float,
+                       motion: Motion) -> np.ndarray:
+    """Per candidate, how far (m) the robot would come short of stopping behind the human ``[C]``
+    (0: it can stop), from the cars' present states ``robot [6]``, ``human [6]`` and the
+    candidates' robot states ``states [C, 15, 6]``. The human brakes from now at ``human_braking``
+    m/s² (or as hard as it brakes now, if harder) to a stop, keeping its lateral position; the
+    robot follows the candidate to the end of window 1 (0.6 s: a plan made next can first brake
+    after it) and then brakes at ``motion``'s hardest (reached at its jerk limit: a delay of half
+    the ramp) to a stop, moving sideways as the candidate does. Short: the least bumper gap
+    (``|Δx| - COLLISION_DX``), negated where below 0, while the human is ahead now and the robot
+    within :data:`FOLLOW_LATERAL` of it sideways (at the horizon's steps, and after the horizon if
+    the robot still is at its end): a candidate may also steer out of the human's way. An
+    RSS-style check (Shalev-Shwartz et al. 2017) with the replanning period as the response time."""
+    if human[0] <= robot[0]:
+        return np.zeros(len(states))
+    end = 2 * STEPS_PER_WINDOW  # steps to the end of window 1
+    t_end = end * DT
+    b_h = max(human_braking, -human[4], 1e-6)
+    b_r = -min(motion.accelerations)
+    v_h = max(human[2], 0.0)
+
+    def human_x(t):
+        moving = np.minimum(t, v_h / b_h)
+        return human[0] + v_h * moving - 0.5 * b_h * moving ** 2
+
+    in_way = np.abs(states[..., 1] - human[1]) < FOLLOW_LATERAL  # [C, 15]
+    steps = DT * np.arange(1, end + 1)
+    gaps_before = np.where(in_way[:, :end], human_x(steps) - states[:, :end, 0] - COLLISION_DX, np.inf)
+
+    x, v, a = states[:, end - 1, 0], np.maximum(states[:, end - 1, 2], 0.0), states[:, end - 1, 4]
+    delay = np.zeros_like(v) if motion.jerk is None else np.maximum(a + b_r, 0.0) / (2 * motion.jerk)
+
+    def robot_x(t):
+        s = t - t_end
+        braking = np.clip(s - delay, 0.0, v / b_r)
+        return x + v * np.minimum(s, delay) + v * braking - 0.5 * b_r * braking ** 2
+
+    # braking: at each step of the horizon where the candidate keeps the robot in the human's way, and after the
+    # horizon, if it still does, at the least gap: an end of a piece of the speeds or where they are equal
+    braking_steps = DT * np.arange(end, HORIZON + 1)[:, None]  # [10, 1] s
+    gaps_braking = np.where(in_way[:, end - 1:].T, human_x(braking_steps) - robot_x(braking_steps), np.inf).min(0)
+    t_horizon = HORIZON * DT
+    with np.errstate(divide="ignore", invalid="ignore"):
+        times = np.stack([t_end + delay, np.full_like(v, v_h / b_h), t_end + delay + v / b_r, (v_h - v) / b_h,
+                          (v - v_h + b_r * (t_end + delay)) / (b_r - b_h)])
+    times = np.maximum(np.nan_to_num(times, nan=0.0, posinf=0.0, neginf=0.0), t_horizon)  # [5, C]
+    gaps_beyond = np.where(in_way[:, -1], (human_x(times) - robot_x(times)).min(0), np.inf)
+    gaps_after = np.minimum(gaps_braking, gaps_beyond) - COLLISION_DX
+    return np.maximum(-np.minimum(gaps_before.min(1), gaps_after), 0.0)
 
 
 @runtime_checkable
@@ -343,7 +420,8 @@ class Planner:
         ``goal_y``; none for a cost without one): turning back (:func:`turn_backs`, once the robot,
         at the last step of ``history``, is ``commit_offset`` from the other lane's centre) and
         setting out beside the human (:func:`set_outs`, while the human would be less than
-        ``set_out_gap`` ahead or behind as the robot moves across, and is not in the robot's lane)."""
+        ``set_out_gap`` ahead or behind as the robot moves across, and is not in the robot's lane);
+        and coming short of stopping behind it (:func:`stopping_shortfall`, with ``follow_braking``)."""
         goal_y = getattr(cost, "goal_y", None)
         rules = np.zeros(len(candidates))
         if goal_y is not None:
@@ -354,6 +432,9 @@ class Planner:
                 rules += mode.turn_back_cost * turn_backs(candidates.actions, goal)
             if mode.blocks_set_out(robot, human):
                 rules += SET_OUT_COST * set_outs(candidates.actions, goal)
+        if mode.follow_braking:
+            rules += FOLLOW_COST * stopping_shortfall(history[-1, 0], candidates.states, history[-1, 1],
+                                                      mode.follow_braking, mode.motion)
         return torch.as_tensor(rules, dtype=self.dtype, device=self.device)
 
     def _sample(self, prepared: torch.Tensor, n: int, human_present: torch.Tensor) -> torch.Tensor:

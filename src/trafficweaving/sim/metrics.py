@@ -11,6 +11,9 @@ robot's car index), judged by the scenario's rules
   recorded step if it never gets there), on the other side of ``SWAP_THRESHOLD_Y`` from its start;
 * ``success``: the robot swapped, no collision, both cars on the road and past the cutoff (the
   outcome is ``valid`` or ``no_lane_swap`` by the human alone);
+* ``robot_success``: the robot's own part of ``success``: it swapped, stayed on the road before
+  the cutoff and did not collide (the score's multipliers, :func:`closed_loop_score`, all 1),
+  whatever the human did (left the road, did not reach the cutoff);
 * ``collision``: the scenario's rule (``|Δx| < COLLISION_DX`` and ``|Δy| < COLLISION_DY`` at a
   recorded step); ``robot_at_fault``: a collision with the robot at fault, by nuPlan's at-fault
   rule (:func:`~trafficweaving.scenario.at_fault_collision`: the car behind in a rear-end
@@ -107,9 +110,11 @@ def episode_metrics(states: np.ndarray, length: int, robot: int, dt: float = DT)
     jerk = np.diff(acc, axis=0) / dt
     lanes = lane_of(y[robot])
     crossed = np.flatnonzero(lanes != lanes[0])
+    score = closed_loop_score(states, robot, outcome, robot_swapped, int(crossed[0]) if len(crossed) else None, dt)
     return {
         "outcome": outcome,
         "success": robot_swapped and outcome in ("valid", "no_lane_swap"),
+        "robot_success": robot_succeeded(score),
         "robot_swapped": robot_swapped,
         "human_swapped": human_swapped,
         "collision": outcome == "collision",
@@ -123,7 +128,7 @@ def episode_metrics(states: np.ndarray, length: int, robot: int, dt: float = DT)
         "time_to_swap_s": float(crossed[0] * dt) if len(crossed) else None,
         "lane_reversals": lane_reversals(y[robot], states[robot, :, 3]),
         "lateral_swings": lateral_swings(acc[:, 1]),
-        "score": closed_loop_score(states, robot, outcome, robot_swapped, int(crossed[0]) if len(crossed) else None, dt),
+        "score": score,
     }
 
 
@@ -174,6 +179,12 @@ def lateral_swings(ydd: np.ndarray) -> int:
     ``|ydd| > SWING_ACCEL``: a steady lane change has one; dithering and chatter many."""
     signs = np.sign(ydd[np.abs(ydd) > SWING_ACCEL])
     return int((signs[1:] != signs[:-1]).sum())
+
+
+def robot_succeeded(score: dict) -> bool:
+    """Whether the robot did its part of an episode whose :func:`closed_loop_score` is ``score``:
+    every multiplier 1 (it swapped lanes before the cutoff, stayed on the road, no collision)."""
+    return all(score["multipliers"].values())
 
 
 def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swapped: bool, crossed: int | None,
@@ -259,6 +270,7 @@ def _group(records: Sequence[dict]) -> dict:
     return {
         "episodes": len(records),
         "success_rate": rate(column("success")),
+        "robot_success_rate": rate([robot_succeeded(m["score"]) for m in metrics]),
         "collisions": sum(column("collision")),
         "collision_rate": rate(column("collision")),
         "robot_at_fault_collisions": _at_fault_count(metrics),
@@ -285,7 +297,7 @@ def aggregate(records: Sequence[dict]) -> dict:
     ``latencies_s`` and ``initial_condition`` with ``dv``, ``tco``, ``robot_lane``).
 
     Returns ``episodes``, ``outcomes`` (count per ``VALIDITY_REASONS``), rates with Wilson
-    intervals (``success_rate``, ``collision_rate``, ``near_collision_rate``, ``robot_first_rate``,
+    intervals (``success_rate``, ``robot_success_rate``, ``collision_rate``, ``near_collision_rate``, ``robot_first_rate``,
     ``human_swap_rate``: ``count``, ``rate``, ``ci95``), counts ``collisions`` (and of them
     ``robot_at_fault_collisions``, :func:`~trafficweaving.scenario.at_fault_collision`; None when
     a colliding episode's log predates it) and
