@@ -297,8 +297,8 @@ def aggregate(records: Sequence[dict]) -> dict:
     ``latencies_s`` and ``initial_condition`` with ``dv``, ``tco``, ``robot_lane``).
 
     Returns ``episodes``, ``outcomes`` (count per ``VALIDITY_REASONS``), rates with Wilson
-    intervals (``success_rate``, ``robot_success_rate``, ``collision_rate``, ``near_collision_rate``, ``robot_first_rate``,
-    ``human_swap_rate``: ``count``, ``rate``, ``ci95``), counts ``collisions`` (and of them
+    intervals (``success_rate``, ``robot_success_rate``, ``collision_rate``, ``near_collision_rate``,
+    ``robot_first_rate``, ``human_swap_rate``: ``count``, ``rate``, ``ci95``), counts ``collisions`` (and of them
     ``robot_at_fault_collisions``, :func:`~trafficweaving.scenario.at_fault_collision`; None when
     a colliding episode's log predates it) and
     ``near_collisions``, means with t-intervals (``min_gap_m`` over the episodes where it is defined,
