@@ -66,6 +66,11 @@ class Motion:
     min_steering_time: float = 0.0
     lateral_limits: tuple[float, float] | None = None
 
+    @property
+    def hardest_braking(self) -> float:
+        """The motion's hardest braking, m/s² (positive)."""
+        return -min(self.accelerations)
+
     def steer(self, state: np.ndarray, target: np.ndarray, times: np.ndarray) -> np.ndarray:
         """Lateral states ``[..., len(times), 3]`` (y, yd, ydd) at ``times`` (s) from ``state [..., 3]``
         steering to the lane centre ``target [...]`` (m) as this motion does."""

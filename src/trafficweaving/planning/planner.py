@@ -174,10 +174,6 @@ FOLLOW_LATERAL = COLLISION_DY + 0.5
 """How close sideways (m, centre to centre) the human, held where it is, is in the robot's way
 (:func:`stopping_shortfall`): the collision rule's 1.8 m and half a metre for the human's sideways
 motion in the next 0.6 s."""
-DECISIVE_FOLLOW_BRAKING = 6.0
-"""The human's braking (m/s²) the decisive modes keep a gap to stop behind: their own hardest."""
-COMFORT_FOLLOW_BRAKING = 4.0
-"""The human's braking (m/s²) the comfort mode keeps a gap to stop behind: its own hardest."""
 STANDOFF_WITHIN = 3.0
 """How long (s) before the cutoff a ``comfort-first`` robot that has not set out falls back on the
 decisive mode in a stand-off: while the set-out rule holds it in its lane and, both cars keeping
@@ -190,9 +186,9 @@ change would take the robot across the swap line (1.4 s from rest) 0.3 s before 
 decisive one's (1.0 s) 0.7 s before it: a little time for the decisive robot to get clear of the
 human first (docs/closed_loop.md)."""
 _DECISIVE = Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP,
-                 follow_braking=DECISIVE_FOLLOW_BRAKING)
+                 follow_braking=MOTIONS["settled"].hardest_braking)
 _COMFORT = Mode(MOTIONS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP, set_out_until=2.5,
-                follow_braking=COMFORT_FOLLOW_BRAKING)
+                follow_braking=MOTIONS["comfort"].hardest_braking)
 MODES = {
     "paper": Mode(),
     "decisive": _DECISIVE,
@@ -203,7 +199,7 @@ MODES = {
 }
 """The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once under way,
 does not start one beside the human, settles on the lane centre, keeps a gap it can stop in behind
-the human); ``comfort`` (the same within
+a human braking as hard as it can itself, :attr:`~.candidates.Motion.hardest_braking`); ``comfort`` (the same within
 nuPlan's comfort limits, with longer lane changes and so a longer look at the gap before setting
 out); ``cautious`` (decisive, judged by the worst 20 % of its sampled futures: CVaR_0.2);
 ``comfort-first`` (comfort, falling back on decisive when the robot has not set out
@@ -256,7 +252,7 @@ def stopping_shortfall(robot: np.ndarray, states: np.ndarray, human: np.ndarray,
     end = 2 * STEPS_PER_WINDOW  # steps to the end of window 1
     t_end = end * DT
     b_h = max(human_braking, -human[4], 1e-6)
-    b_r = -min(motion.accelerations)
+    b_r = motion.hardest_braking
     v_h = max(human[2], 0.0)
 
     def human_x(t):
