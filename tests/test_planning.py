@@ -21,9 +21,10 @@ from trafficweaving.planning.candidates import (ACCELERATIONS, MOTIONS, N_ACTION
                                                 action_sequences, robot_candidates, rollout)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
-from trafficweaving.planning.planner import (FOLLOW_COST, FOLLOW_LATERAL, MODES, OWN_FUTURES_SHARE, SCREENING_SAMPLES,
-                                             SET_OUT_COST, SHORTLIST, Budget, Mode, Planner, example_history, risk_cost,
-                                             set_outs, stopping_shortfall, turn_backs)
+from trafficweaving.planning.planner import (FOLLOW_COST, FOLLOW_LATERAL, HUMAN_ACCELERATION_HELD, MODES,
+                                             OWN_FUTURES_SHARE, SCREENING_SAMPLES, SET_OUT_COST, SET_OUT_GAP, SHORTLIST,
+                                             STANDOFF_EXIT_COST, YIELD_MARGIN, Budget, Mode, Planner, example_history,
+                                             risk_cost, set_outs, standoff_exit, stopping_shortfall, turn_backs)
 from trafficweaving.planning.steering import jerk_limited_steer, optimal_time, steer, steering_cost
 from trafficweaving.scenario import COLLISION_DX, CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.sim.world import World
@@ -517,6 +518,64 @@ def test_the_following_rule_keeps_a_gap_the_robot_can_stop_in():
     assert Action(int(ruled.actions[1])).acceleration == -6.0  # toy_cost alone prefers 4 m/s² in every window
     with pytest.raises(InputError):
         Mode(follow_braking=-1.0)
+
+
+def _seconds_to_clear(robot, human, acceleration, gap, ahead):
+    """How long the robot holding ``acceleration`` from its state ``robot [6]`` takes to get ``gap``
+    ahead of (or behind) the human ``human [6]``, holding its acceleration for
+    HUMAN_ACCELERATION_HELD s and then its speed, on a 1 ms grid (20 s)."""
+    t = np.arange(0, 20_001) * 1e-3
+    human_speed = human[2] + human[4] * np.minimum(t, HUMAN_ACCELERATION_HELD)
+    human_x = human[0] + np.concatenate([[0.0], np.cumsum(0.5 * 1e-3 * (human_speed[1:] + human_speed[:-1]))])
+    dx = robot[0] + robot[2] * t + 0.5 * acceleration * t * t - human_x
+    clear = dx >= gap if ahead else dx <= -gap
+    return t[np.argmax(clear)] if clear.any() else np.inf
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(-12.0, 12.0), st.floats(-4.0, 4.0), st.floats(-8.0, 4.0), st.sampled_from(["settled", "comfort"]))
+def test_the_standoff_exit_takes_the_sooner_way_out_and_yields_in_doubt(dx, dv, human_acceleration, motion_name):
+    """Against brute force."""
+    motion = MOTIONS[motion_name]
+    human = np.array([-100.0, LEFT, 28.0, 0.0, human_acceleration, 0.0])
+    robot = human + [dx, RIGHT - LEFT, dv, 0.0, -human_acceleration, 0.0]
+    ahead = _seconds_to_clear(robot, human, max(motion.accelerations), SET_OUT_GAP, True)
+    behind = _seconds_to_clear(robot, human, -motion.hardest_braking, SET_OUT_GAP, False)
+    way_out = motion.accelerations[standoff_exit(robot, human, motion, SET_OUT_GAP)]
+    if ahead + YIELD_MARGIN < behind - 2e-3:
+        assert way_out == max(motion.accelerations)
+    elif ahead + YIELD_MARGIN > behind + 2e-3 or ahead == behind == np.inf:
+        assert way_out == -motion.hardest_braking
+
+
+def test_the_standoff_exit_makes_room_beside_the_human():
+    """2 m behind the human at the same speed, the robot yields (hardest braking); 4 m ahead, or
+    beside a human braking at 8 m/s², it goes ahead. The planner costs every other window-1
+    acceleration ``standoff_exit_cost`` while the set-out rule holds the robot in its lane, and
+    only then."""
+    mode = MODES["comfort-first"].fallback
+    assert mode.standoff_exit_cost == MODES["comfort-first"].standoff_exit_cost == STANDOFF_EXIT_COST
+    history = _history()
+    robot, human = history[-1]
+    assert mode.blocks_set_out(robot, human)  # the human 2 m ahead at the same speed
+    assert mode.motion.accelerations[standoff_exit(robot, human, mode.motion, SET_OUT_GAP)] == -6.0
+    ahead = robot + [6.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    assert mode.motion.accelerations[standoff_exit(ahead, human, mode.motion, SET_OUT_GAP)] == 4.0
+    braking = human + [0.0, 0.0, 0.0, 0.0, -8.0, 0.0]  # a human that yields too: the robot goes ahead
+    assert mode.motion.accelerations[standoff_exit(robot, braking, mode.motion, SET_OUT_GAP)] == 4.0
+    keep, cost = Action.of(0.0, "right").index, GoalToyCost(LEFT)
+    ruled = Planner(ToyHuman(), seed=0, mode=mode).plan(history, keep, cost)
+    plain = Planner(ToyHuman(), seed=0, mode=replace(mode, standoff_exit_cost=0.0)).plan(history, keep, cost)
+    exits = np.array([Action(int(a)).acceleration for a in ruled.candidates.actions[:, 1]]) == -6.0
+    np.testing.assert_allclose(ruled.first_stage_cost - plain.first_stage_cost, STANDOFF_EXIT_COST * ~exits, atol=0.1)
+    assert Action(int(ruled.actions[1])).acceleration == -6.0 and Action(int(plain.actions[1])).acceleration == 4.0
+    clear = history.copy()
+    clear[:, 1, 0] += 30.0  # the human 32 m ahead: no stand-off, no exit cost
+    ruled = Planner(ToyHuman(), seed=0, mode=mode).plan(clear, keep, cost)
+    plain = Planner(ToyHuman(), seed=0, mode=replace(mode, standoff_exit_cost=0.0)).plan(clear, keep, cost)
+    np.testing.assert_allclose(ruled.first_stage_cost, plain.first_stage_cost)
+    with pytest.raises(InputError, match="standoff_exit_cost"):
+        Mode(standoff_exit_cost=-1.0)
 
 
 def test_the_set_out_rule_watches_the_gap_while_each_modes_lane_change_crosses_the_divider():

@@ -2,6 +2,8 @@
 the MPC's hold and replanning cadence in the world, closed-loop lane swaps against a scripted
 constant-speed human, and bad specs."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -15,6 +17,7 @@ from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import SET_OUT_GAP, Budget, Planner, example_history
 from trafficweaving.scenario import (CAR_WIDTH, COLLISION_DY, DT, LANE_CENTRE_Y, LANE_DIVIDER_Y, SWAP_THRESHOLD_Y,
                                      VALIDITY_REASONS, check_validity, lane_of, study_initial_conditions)
+from trafficweaving.sim.metrics import comfort_violations
 from trafficweaving.sim.robots import ROBOT_SPECS, RuleBasedRobot, RuleParameters, robot_agent
 from trafficweaving.sim.world import World, run_episodes
 
@@ -117,13 +120,14 @@ def test_the_rule_based_robot_swaps_lanes_in_every_study_start(me):
     assert world.states[np.arange(len(STARTS)), me, swap, 0].max() < -20.0 and min_dx.min() > 10.0
 
 
-@pytest.mark.parametrize("spec, start, me", [("planner", 6, 0), ("planner", 12, 1), ("planner-cv", 0, 1),
-                                             ("planner-comfort-first", 0, 1)])
+@pytest.mark.parametrize("spec, start, me", [("planner-decisive", 6, 0), ("planner-decisive", 12, 1),
+                                             ("planner-cv", 0, 1), ("planner", 0, 1), ("planner", 6, 0)])
 def test_planner_robots_swap_lanes_without_collision_and_set_out_only_with_room(spec, start, me):
     """The scripted human keeps to its lane, so the robot must be SET_OUT_GAP ahead or behind it
-    while it moves across (the human starts beside it in all four: 0 or 2 m apart). Comfort first
-    falls back on the decisive mode here; side by side at the same speed (start 6) it misses its
-    lane swap (docs/closed_loop.md)."""
+    while it moves across (the human starts beside it in all five: 0 or 2 m apart). The default
+    (comfort first) makes room beside it: side by side at the same speed (start 6) it drops behind
+    within the comfort limits (before its stand-off exit it missed its lane swap there,
+    docs/closed_loop.md)."""
     starts = STARTS[[start]] if me == 0 else STARTS[[start], ::-1]
     robot = robot_agent(spec, budget=Budget(2, 8, 32))
     world = run_episodes(starts, [robot, ScriptedHuman()][:: 1 if me == 0 else -1], np.random.default_rng(start))
@@ -134,6 +138,8 @@ def test_planner_robots_swap_lanes_without_collision_and_set_out_only_with_room(
     crossing = np.abs(states[me, :, 1] - LANE_DIVIDER_Y) < CAR_WIDTH / 2  # the robot's body over the divider
     assert 0 < np.argmax(crossing) < swap[0]
     assert np.abs(states[me, crossing, 0] - states[1 - me, crossing, 0]).min() >= SET_OUT_GAP
+    if spec == "planner" and start == 6:
+        assert not robot.fallen_back and not comfort_violations(states[me, :, 4:6]).any()
 
 
 def test_the_planning_robots_drive_in_their_modes():
@@ -141,9 +147,10 @@ def test_the_planning_robots_drive_in_their_modes():
     from trafficweaving.planning.planner import MODES
     from trafficweaving.sim.robots import robot_planner
 
-    assert robot_planner("planner").mode == robot_planner("planner-cv").mode == MODES["decisive"]
-    first = robot_planner("planner-comfort-first").mode
-    assert first == MODES["comfort-first"] and first.motion == MOTIONS["comfort"] and first.fallback == MODES["decisive"]
+    assert robot_planner("planner-decisive").mode == robot_planner("planner-cv").mode == MODES["decisive"]
+    first = robot_planner("planner").mode
+    assert first == MODES["comfort-first"] and first.motion == MOTIONS["comfort"]
+    assert first.fallback == replace(MODES["decisive"], standoff_exit_cost=first.standoff_exit_cost)
     assert robot_planner("planner-paper").mode == MODES["paper"] and MODES["paper"].motion == MOTIONS["paper"]
     assert MODES["paper"].turn_back_cost == 0 and MODES["paper"].risk == 1  # the paper's objective, unchanged
     assert robot_planner("planner-comfort").motion == MOTIONS["comfort"]
@@ -152,10 +159,10 @@ def test_the_planning_robots_drive_in_their_modes():
 
 # ---------------------------------------------------------------- bad input
 def test_bad_specs_and_arguments_raise_input_errors():
-    with pytest.raises(InputError, match=r"robot 'mpc' is unknown \(expected one of: planner, planner-paper, planner-comfort, "
-                                         r"planner-comfort-first, planner-cautious, planner-cv, rules\)"):
+    with pytest.raises(InputError, match=r"robot 'mpc' is unknown \(expected one of: planner, planner-decisive, "
+                                         r"planner-paper, planner-comfort, planner-cautious, planner-cv, rules\)"):
         robot_agent("mpc")
-    assert ROBOT_SPECS == ("planner", "planner-paper", "planner-comfort", "planner-comfort-first", "planner-cautious",
+    assert ROBOT_SPECS == ("planner", "planner-decisive", "planner-paper", "planner-comfort", "planner-cautious",
                            "planner-cv", "rules")
     for bad in ({"time_headway": -1.0}, {"politeness": float("nan")}, {"hurried_lane_change_time": 4.0}):
         with pytest.raises(InputError, match=next(iter(bad))):

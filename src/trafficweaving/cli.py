@@ -772,11 +772,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="closed-loop episodes of a robot against a human, with metrics and CIs")
     p.add_argument("--episodes", type=POSITIVE, required=True, help="episodes 0..N-1 (each from --seed and its index)")
-    p.add_argument("--robot", default="planner", help="planner (default: decisive, keeps to a lane change and settles "
-                                                      "on the lane centre), planner-paper (the paper's exactly), "
+    p.add_argument("--robot", default="planner", help="planner (default: within nuPlan's comfort limits until time "
+                                                      "runs short, then decisive; makes room beside the human), "
+                                                      "planner-decisive (keeps to a lane change and settles on the "
+                                                      "lane centre), planner-paper (the paper's exactly), "
                                                       "planner-comfort (within nuPlan's comfort limits), "
-                                                      "planner-comfort-first (comfort until time runs short, then "
-                                                      "decisive), planner-cautious (CVaR), planner-cv or rules")
+                                                      "planner-cautious (CVaR), planner-cv or rules")
     p.add_argument("--human", required=True, help=HUMAN_SPECS)
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--model", default="default", help="the planner's human model: checkpoint path, default, or authors:PATH")

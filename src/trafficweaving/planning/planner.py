@@ -74,6 +74,12 @@ class Mode:
     as the candidate does, would come short of stopping behind the human braking at
     ``follow_braking`` m/s² from now (or as hard as it brakes now, if harder): the robot keeps a gap
     it can stop in, or steers out of the way (0: no rule, the paper's).
+    ``standoff_exit_cost``: the stand-off exit: while the set-out rule holds the robot in the lane
+    it has not yet left (window 0 keeps to it), a candidate whose window 1 does not take the way
+    out of the stand-off (:func:`standoff_exit`: its ``motion``'s hardest braking, to drop behind
+    the human, or its hardest acceleration where that gets it clear ahead clearly sooner) costs
+    this much: the robot makes room instead of waiting beside the human for room (0: it may
+    wait, the paper's).
     ``fallback``: the mode a receding-horizon policy plans in (None: none) from the first plan where
     the robot has not set out for the goal lane and would reach the cutoff within
     ``fallback_within`` s at its present speed, or within ``standoff_within`` s in a stand-off
@@ -91,19 +97,20 @@ class Mode:
     fallback_within: float = 0.0
     standoff_within: float = 0.0
     follow_braking: float = 0.0
+    standoff_exit_cost: float = 0.0
 
     def __post_init__(self):
         non_negative = (self.turn_back_cost, self.commit_offset, self.set_out_gap, self.fallback_within,
-                        self.standoff_within, self.follow_braking)
+                        self.standoff_within, self.follow_braking, self.standoff_exit_cost)
         if (not all(v >= 0 and np.isfinite(v) for v in non_negative) or not 0 < self.risk <= 1
                 or not SET_OUT_FROM < self.set_out_until < np.inf
                 or not (self.fallback is None or isinstance(self.fallback, Mode) and self.fallback.fallback is None)):
             raise InputError(f"a planner mode needs turn_back_cost, commit_offset, set_out_gap, fallback_within, "
-                             f"standoff_within and follow_braking finite and >= 0, 0 < risk <= 1, set_out_until "
-                             f"finite and > {SET_OUT_FROM} and a fallback that is None or a Mode without a fallback of "
-                             f"its own, got {self.turn_back_cost}, {self.commit_offset}, {self.set_out_gap}, "
-                             f"{self.fallback_within}, {self.standoff_within}, {self.follow_braking}, {self.risk}, "
-                             f"{self.set_out_until}, {self.fallback!r}")
+                             f"standoff_within, follow_braking and standoff_exit_cost finite and >= 0, 0 < risk <= 1, "
+                             f"set_out_until finite and > {SET_OUT_FROM} and a fallback that is None or a Mode without a "
+                             f"fallback of its own, got {self.turn_back_cost}, {self.commit_offset}, {self.set_out_gap}, "
+                             f"{self.fallback_within}, {self.standoff_within}, {self.follow_braking}, "
+                             f"{self.standoff_exit_cost}, {self.risk}, {self.set_out_until}, {self.fallback!r}")
 
     def blocks_set_out(self, robot: np.ndarray, human: np.ndarray, after: float = 0.0) -> bool:
         """Whether the set-out rule holds the robot in its lane, from both cars' present states
@@ -170,6 +177,17 @@ FOLLOW_COST = 100_000.0
 """Cost per metre by which a candidate would come short of stopping behind the human
 (:func:`stopping_shortfall`): a rule, as :data:`SET_OUT_COST`; where every candidate comes short,
 the one short by least (braking hardest, or steering clear) is best."""
+STANDOFF_EXIT_COST = 2000.0
+"""The ``comfort-first`` mode's cost of a window 1 that does not take the way out of a stand-off
+(``Mode.standoff_exit_cost``): about what one colliding future in the 32 of a real-time screening
+adds to a candidate's mean (66,000 / 32), so the way out gives way to a risk of collision that
+the sampled futures show, not to their small preferences."""
+YIELD_MARGIN = 0.5
+"""How much sooner (s) getting clear ahead must be than dropping behind for a stand-off exit
+(:func:`standoff_exit`) to accelerate: in doubt the robot yields."""
+HUMAN_ACCELERATION_HELD = 0.6
+"""How long (s) :func:`standoff_exit` expects the human to hold its present acceleration (then its
+speed): to the end of window 1, by when the next plans have seen what it did instead."""
 FOLLOW_LATERAL = COLLISION_DY + 0.5
 """How close sideways (m, centre to centre) the human, held where it is, is in the robot's way
 (:func:`stopping_shortfall`): the collision rule's 1.8 m and half a metre for the human's sideways
@@ -194,8 +212,9 @@ MODES = {
     "decisive": _DECISIVE,
     "comfort": _COMFORT,
     "cautious": replace(_DECISIVE, risk=0.2),
-    "comfort-first": replace(_COMFORT, fallback=_DECISIVE, fallback_within=FALLBACK_WITHIN,
-                             standoff_within=STANDOFF_WITHIN),
+    "comfort-first": replace(_COMFORT, standoff_exit_cost=STANDOFF_EXIT_COST,
+                             fallback=replace(_DECISIVE, standoff_exit_cost=STANDOFF_EXIT_COST),
+                             fallback_within=FALLBACK_WITHIN, standoff_within=STANDOFF_WITHIN),
 }
 """The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once under way,
 does not start one beside the human, settles on the lane centre, keeps a gap it can stop in behind
@@ -204,7 +223,8 @@ nuPlan's comfort limits, with longer lane changes and so a longer look at the ga
 out); ``cautious`` (decisive, judged by the worst 20 % of its sampled futures: CVaR_0.2);
 ``comfort-first`` (comfort, falling back on decisive when the robot has not set out
 :data:`FALLBACK_WITHIN` s before the cutoff, or :data:`STANDOFF_WITHIN` s before it in a
-stand-off; docs/closed_loop.md)."""
+stand-off; in both, beside the human it makes room: the stand-off exit, :data:`STANDOFF_EXIT_COST`;
+docs/closed_loop.md)."""
 
 
 def risk_cost(scores: torch.Tensor, risk: float) -> torch.Tensor:
@@ -232,6 +252,46 @@ def set_outs(actions: np.ndarray, goal: str) -> np.ndarray:
     window 0 (the one being executed) does not ``[C]``: the plan starts a lane change now."""
     targets = _targets(actions, goal)
     return ~targets[:, 0] & targets[:, 1]
+
+
+def standoff_exit(robot: np.ndarray, human: np.ndarray, motion: Motion, gap: float) -> int:
+    """The acceleration index of ``motion`` by which the robot leaves a stand-off, from the cars'
+    present states ``robot [6]``, ``human [6]``: its hardest acceleration, if that gets it ``gap`` m
+    ahead of the human more than :data:`YIELD_MARGIN` s sooner than its hardest braking gets it
+    ``gap`` m behind (both held from now; the human holding its present acceleration for
+    :data:`HUMAN_ACCELERATION_HELD` s, then its speed); else that braking. A human that brakes or
+    accelerates with the robot makes the other way out the sooner."""
+    dx, dv = robot[0] - human[0], robot[2] - human[2]
+    ahead = _time_to_gain(gap - dx, dv, max(motion.accelerations), -human[4])
+    behind = _time_to_gain(gap + dx, -dv, motion.hardest_braking, human[4])
+    return int(np.argmax(motion.accelerations) if ahead + YIELD_MARGIN < behind else np.argmin(motion.accelerations))
+
+
+def _time_to_gain(distance: float, speed: float, acceleration: float, human_part: float) -> float:
+    """How long (s) the robot takes to gain ``distance`` (m) on the human from their relative
+    ``speed`` (m/s) at the relative ``acceleration`` (m/s²), plus the human's ``human_part`` (m/s²)
+    for the first :data:`HUMAN_ACCELERATION_HELD` s: 0 where ``distance`` is 0 or less, inf where
+    it never does."""
+    held, first = acceleration + human_part, HUMAN_ACCELERATION_HELD
+    t = _uniform_time_to_gain(distance, speed, held)
+    if t <= first:
+        return t
+    gained = speed * first + 0.5 * held * first * first
+    return first + _uniform_time_to_gain(distance - gained, speed + held * first, acceleration)
+
+
+def _uniform_time_to_gain(distance: float, speed: float, acceleration: float) -> float:
+    """:func:`_time_to_gain` at one relative ``acceleration`` (m/s²) throughout."""
+    if distance <= 0:
+        return 0.0
+    if abs(acceleration) < 1e-9:
+        return distance / speed if speed > 0 else np.inf
+    discriminant = speed * speed + 2 * acceleration * distance
+    if discriminant < 0 or acceleration < 0 and speed <= 0:
+        return np.inf  # decelerating, it stops gaining first
+    if acceleration > 0:
+        return (np.sqrt(discriminant) - speed) / acceleration
+    return (speed - np.sqrt(discriminant)) / -acceleration
 
 
 def stopping_shortfall(robot: np.ndarray, states: np.ndarray, human: np.ndarray, human_braking: float,
@@ -428,6 +488,9 @@ class Planner:
                 rules += mode.turn_back_cost * turn_backs(candidates.actions, goal)
             if mode.blocks_set_out(robot, human):
                 rules += SET_OUT_COST * set_outs(candidates.actions, goal)
+                if mode.standoff_exit_cost and not _targets(candidates.actions[:1, :1], goal)[0, 0]:
+                    way_out = standoff_exit(robot, human, mode.motion, mode.set_out_gap)
+                    rules += mode.standoff_exit_cost * (candidates.actions[:, 1] // len(LANES) != way_out)
         if mode.follow_braking:
             rules += FOLLOW_COST * stopping_shortfall(history[-1, 0], candidates.states, history[-1, 1],
                                                       mode.follow_braking, mode.motion)

@@ -29,10 +29,10 @@ from ..planning.planner import MODES, Budget, Planner
 from ..scenario import CAR_LENGTH, COLLISION_DY, DT, LANE_CENTRE_Y, LANES, ROAD_END_X, STATE_NAMES, lane_of
 from .world import Agent
 
-PLANNER_MODES = {"planner": "decisive", "planner-paper": "paper", "planner-comfort": "comfort",
-                 "planner-comfort-first": "comfort-first", "planner-cautious": "cautious", "planner-cv": "decisive"}
+PLANNER_MODES = {"planner": "comfort-first", "planner-decisive": "decisive", "planner-paper": "paper",
+                 "planner-comfort": "comfort", "planner-cautious": "cautious", "planner-cv": "decisive"}
 """The planning robots and their planner's mode (:data:`~trafficweaving.planning.planner.MODES`):
-the default ``planner`` is decisive (docs/closed_loop.md); ``planner-paper`` is the paper's exactly."""
+the default ``planner`` is comfortable first (docs/closed_loop.md); ``planner-paper`` is the paper's exactly."""
 ROBOT_SPECS = (*PLANNER_MODES, "rules")
 """The robots :func:`robot_agent` builds."""
 
@@ -189,16 +189,17 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
                 device: torch.device | str = "cpu", precision: str = "auto") -> Agent:
     """The robot agent named by ``spec`` (one of :data:`ROBOT_SPECS`):
 
-    * ``planner``: :class:`~trafficweaving.planning.mpc.MPCPolicy` planning against the human
-      model ``model`` (``default``, a checkpoint path or ``authors:PATH``, as
+    * ``planner-decisive``: :class:`~trafficweaving.planning.mpc.MPCPolicy` planning against the
+      human model ``model`` (``default``, a checkpoint path or ``authors:PATH``, as
       :func:`~trafficweaving.model.checkpoint.load_model`; the unimodal ``lstm`` variant is just
       ``model=path/to/lstm.pt``) through :class:`HumanPredictor` (with ``precision``), in the
       decisive mode (:data:`~trafficweaving.planning.planner.MODES`: settled steering, turn-back cost,
-      no setting out beside the human);
+      no setting out beside the human, a gap it can stop in);
     * ``planner-paper``: the same in the paper's mode exactly;
     * ``planner-comfort``: decisive, with candidates that keep to nuPlan's comfort limits;
-    * ``planner-comfort-first``: ``planner-comfort`` until the robot has not set out 2.0 s before
-      the cutoff, or 3.0 s before it in a stand-off, then ``planner`` to the end of the episode;
+    * ``planner`` (the default): comfort first, ``planner-comfort`` until the robot has not set out
+      2.0 s before the cutoff, or 3.0 s before it in a stand-off, then ``planner-decisive`` to the
+      end of the episode, in both making room beside the human (the stand-off exit);
     * ``planner-cautious``: decisive, judging its candidates by CVaR (the worst 20 % of the futures);
     * ``planner-cv``: the decisive planner against :class:`ConstantVelocityHuman` (``model`` unused);
     * ``rules``: :class:`RuleBasedRobot` (``model``, ``deadline``, ``budget`` unused).

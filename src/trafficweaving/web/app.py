@@ -39,7 +39,7 @@ handshake completes, the client sees HTTP 403."""
 
 
 def build_robot(model: str, deadline: float, threads: int, device: str = "cpu") -> NonBlockingMPCPolicy:
-    """The default planner (``sim.robots.robot_planner("planner")``: decisive, against the human
+    """The default planner (``sim.robots.robot_planner("planner")``: comfort first, against the human
     model ``model`` in real-time mode with ``deadline`` s per plan), planning in a background
     thread with ``threads`` torch threads; warmed up with a few plans there, so that the first plan
     of a trial does not pay for lazy initialisation and the deadline mode knows this machine's speed."""
