@@ -30,6 +30,11 @@ WINDOWS = HORIZON // STEPS_PER_WINDOW
 """Action windows per candidate (5), the first one fixed."""
 
 
+def acceleration_indices(actions: np.ndarray | int) -> np.ndarray | int:
+    """The acceleration index (into a :class:`Motion`'s ``accelerations``) of action indices ``actions``."""
+    return actions // len(LANES)
+
+
 @dataclass(frozen=True)
 class Action:
     """One window's action: index ``0..N_ACTIONS-1`` = ``len(LANES) · acceleration index + lane index``."""
@@ -38,7 +43,7 @@ class Action:
 
     @property
     def acceleration(self) -> float:
-        return ACCELERATIONS[self.index // len(LANES)]
+        return ACCELERATIONS[acceleration_indices(self.index)]
 
     @property
     def lane(self) -> str:
@@ -131,8 +136,8 @@ def rollout(present: np.ndarray, actions: np.ndarray, motion: Motion = MOTIONS["
     actions = np.asarray(actions)
     c, w = actions.shape
     steps = STEPS_PER_WINDOW * w
-    # longitudinal: acceleration applied from each step, Euler velocity, trapezoid position
-    acc = np.repeat(np.asarray(motion.accelerations)[actions // len(LANES)], STEPS_PER_WINDOW, axis=1)  # [C, steps], applied from t+k
+    # longitudinal: acceleration applied from each step (acc [C, steps], from t+k), Euler velocity, trapezoid position
+    acc = np.repeat(np.asarray(motion.accelerations)[acceleration_indices(actions)], STEPS_PER_WINDOW, axis=1)
     if motion.jerk is not None:  # from the present acceleration towards each window's, at most jerk·DT a step
         acc[:, 0] = present[4]
         for k in range(1, steps):

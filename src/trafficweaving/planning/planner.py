@@ -31,7 +31,7 @@ from ..errors import InputError
 from ..scenario import (CAR_WIDTH, COLLISION_DX, COLLISION_DY, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANES,
                         STATE_NAMES, lane_of)
 from .candidates import (MOTIONS, N_ACTIONS, N_CANDIDATES, STEPS_PER_WINDOW, WINDOWS, Action, Candidates, Motion,
-                         robot_candidates)
+                         acceleration_indices, robot_candidates)
 from .costs import Cost
 
 
@@ -476,8 +476,10 @@ class Planner:
         ``goal_y``; none for a cost without one): turning back (:func:`turn_backs`, once the robot,
         at the last step of ``history``, is ``commit_offset`` from the other lane's centre) and
         setting out beside the human (:func:`set_outs`, while the human would be less than
-        ``set_out_gap`` ahead or behind as the robot moves across, and is not in the robot's lane);
-        and coming short of stopping behind it (:func:`stopping_shortfall`, with ``follow_braking``)."""
+        ``set_out_gap`` ahead or behind as the robot moves across, and is not in the robot's lane),
+        and then, before it has set out, not taking the way out of the stand-off
+        (:func:`standoff_exit`, with ``standoff_exit_cost``); and coming short of stopping behind it
+        (:func:`stopping_shortfall`, with ``follow_braking``)."""
         goal_y = getattr(cost, "goal_y", None)
         rules = np.zeros(len(candidates))
         if goal_y is not None:
@@ -488,9 +490,9 @@ class Planner:
                 rules += mode.turn_back_cost * turn_backs(candidates.actions, goal)
             if mode.blocks_set_out(robot, human):
                 rules += SET_OUT_COST * set_outs(candidates.actions, goal)
-                if mode.standoff_exit_cost and not _targets(candidates.actions[:1, :1], goal)[0, 0]:
+                if mode.standoff_exit_cost and Action(int(candidates.actions[0, 0])).lane != goal:  # not set out
                     way_out = standoff_exit(robot, human, mode.motion, mode.set_out_gap)
-                    rules += mode.standoff_exit_cost * (candidates.actions[:, 1] // len(LANES) != way_out)
+                    rules += mode.standoff_exit_cost * (acceleration_indices(candidates.actions[:, 1]) != way_out)
         if mode.follow_braking:
             rules += FOLLOW_COST * stopping_shortfall(history[-1, 0], candidates.states, history[-1, 1],
                                                       mode.follow_braking, mode.motion)
