@@ -23,8 +23,9 @@ from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import (FOLLOW_COST, FOLLOW_LATERAL, HUMAN_ACCELERATION_HELD, MODES,
                                              OWN_FUTURES_SHARE, SCREENING_SAMPLES, SET_OUT_COST, SET_OUT_GAP, SHORTLIST,
-                                             STANDOFF_EXIT_COST, YIELD_MARGIN, Budget, Mode, Planner, example_history,
-                                             risk_cost, set_outs, standoff_exit, stopping_shortfall, turn_backs)
+                                             STANDOFF_EXIT_COST, YIELD_MARGIN, YIELD_SPEED_FLOOR, Budget, Mode, Planner,
+                                             example_history, risk_cost, set_outs, standoff_exit, stopping_shortfall,
+                                             turn_backs)
 from trafficweaving.planning.steering import jerk_limited_steer, optimal_time, steer, steering_cost
 from trafficweaving.scenario import COLLISION_DX, CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.sim.world import World
@@ -520,32 +521,45 @@ def test_the_following_rule_keeps_a_gap_the_robot_can_stop_in():
         Mode(follow_braking=-1.0)
 
 
-def _seconds_to_clear(robot, human, acceleration, gap, ahead):
-    """How long the robot holding ``acceleration`` from its state ``robot [6]`` takes to get ``gap``
-    ahead of (or behind) the human ``human [6]``, holding its acceleration for
-    HUMAN_ACCELERATION_HELD s and then its speed, on a 1 ms grid (20 s)."""
+def _seconds_to_clear(robot, human, acceleration, gap, ahead, floor=-np.inf):
+    """How long the robot holding ``acceleration`` from its state ``robot [6]`` (its speed kept at
+    ``floor`` or above once it is) takes to get ``gap`` ahead of (or behind) the human ``human
+    [6]``, holding its acceleration for HUMAN_ACCELERATION_HELD s and then its speed, on a 1 ms
+    grid (20 s)."""
     t = np.arange(0, 20_001) * 1e-3
-    human_speed = human[2] + human[4] * np.minimum(t, HUMAN_ACCELERATION_HELD)
-    human_x = human[0] + np.concatenate([[0.0], np.cumsum(0.5 * 1e-3 * (human_speed[1:] + human_speed[:-1]))])
-    dx = robot[0] + robot[2] * t + 0.5 * acceleration * t * t - human_x
+    integral = lambda speed: np.concatenate([[0.0], np.cumsum(0.5 * 1e-3 * (speed[1:] + speed[:-1]))])  # noqa: E731
+    human_x = human[0] + integral(human[2] + human[4] * np.minimum(t, HUMAN_ACCELERATION_HELD))
+    robot_x = robot[0] + integral(np.maximum(robot[2] + acceleration * t, min(floor, robot[2])))
+    dx = robot_x - human_x
     clear = dx >= gap if ahead else dx <= -gap
     return t[np.argmax(clear)] if clear.any() else np.inf
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.floats(-12.0, 12.0), st.floats(-4.0, 4.0), st.floats(-8.0, 4.0), st.sampled_from(["settled", "comfort"]))
-def test_the_standoff_exit_takes_the_sooner_way_out_and_yields_in_doubt(dx, dv, human_acceleration, motion_name):
-    """Against brute force."""
+@given(st.floats(-12.0, 12.0), st.floats(-4.0, 4.0), st.floats(-8.0, 4.0), st.floats(14.0, 32.0),
+       st.sampled_from(["settled", "comfort"]))
+def test_the_standoff_exit_takes_the_sooner_way_out_and_yields_in_doubt(dx, dv, human_acceleration, speed, motion_name):
+    """Against brute force, the robot braking to YIELD_SPEED_FLOOR and no slower."""
     motion = MOTIONS[motion_name]
-    human = np.array([-100.0, LEFT, 28.0, 0.0, human_acceleration, 0.0])
+    human = np.array([-100.0, LEFT, speed, 0.0, human_acceleration, 0.0])
     robot = human + [dx, RIGHT - LEFT, dv, 0.0, -human_acceleration, 0.0]
     ahead = _seconds_to_clear(robot, human, max(motion.accelerations), SET_OUT_GAP, True)
-    behind = _seconds_to_clear(robot, human, -motion.hardest_braking, SET_OUT_GAP, False)
+    behind = _seconds_to_clear(robot, human, -motion.hardest_braking, SET_OUT_GAP, False, YIELD_SPEED_FLOOR)
     way_out = motion.accelerations[standoff_exit(robot, human, motion, SET_OUT_GAP)]
     if ahead + YIELD_MARGIN < behind - 2e-3:
         assert way_out == max(motion.accelerations)
     elif ahead + YIELD_MARGIN > behind + 2e-3 or ahead == behind == np.inf:
         assert way_out == -motion.hardest_braking
+
+
+def test_the_standoff_exit_yields_down_to_the_speed_floor_and_no_further():
+    """2 m behind a human at the same speed, the robot drops behind (hardest braking) at 29 m/s;
+    at YIELD_SPEED_FLOOR it cannot brake any more, so it goes ahead instead."""
+    motion = MOTIONS["settled"]
+    for speed, way_out in ((29.0, -6.0), (YIELD_SPEED_FLOOR, 4.0)):
+        human = np.array([-60.0, LEFT, speed, 0.0, 0.0, 0.0])
+        robot = human + [-2.0, RIGHT - LEFT, 0.0, 0.0, 0.0, 0.0]
+        assert motion.accelerations[standoff_exit(robot, human, motion, SET_OUT_GAP)] == way_out
 
 
 def test_the_standoff_exit_makes_room_beside_the_human():

@@ -13,12 +13,12 @@ from trafficweaving.data.trials import load_trials
 from trafficweaving.dynamics import constant_acceleration_future, future_states, without_reversing
 from trafficweaving.errors import InputError
 from trafficweaving.model.checkpoint import load_model
-from trafficweaving.scenario import (CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y, MIN_HISTORY, SWAP_THRESHOLD_Y,
-                                   on_road, study_initial_conditions)
+from trafficweaving.scenario import (CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y, MIN_HISTORY, START_X,
+                                   SWAP_THRESHOLD_Y, on_road, study_initial_conditions)
 from trafficweaving.sim.drivers import DriverModel, DriverStyles
 from trafficweaving.sim.generate import generate_trials
-from trafficweaving.sim.humans import (ModelDriver, ReplayDriver, SampledDrivers, SyntheticDrivers, human_agent, keep_on_road,
-                                      lateness)
+from trafficweaving.sim.humans import (ConstantVelocityDriver, ModelDriver, ReplayDriver, SampledDrivers, SyntheticDrivers,
+                                      human_agent, keep_on_road, lateness)
 from trafficweaving.sim.world import run_episodes
 
 
@@ -275,15 +275,25 @@ def test_braking_stops_a_car_and_never_reverses_it(v0, a0, accelerations):
         np.testing.assert_array_equal(guarded, accelerations)
 
 
-def test_a_driver_model_braking_to_a_stop_does_not_roll_backwards():
-    driver = load_model("driver")
-    agent = ModelDriver(driver, anticipation=0)
-    histories, futures = _driver_situation()
-    histories[:, -1, 1, 2] = 0.5  # the human car crawls at 0.5 m/s
-    agent.model.sample_futures = _proposing(driver, (-6.0, 0.0))
-    executed = agent.sample(histories, futures)[0]
-    states = future_states(histories[:, -1, 1], executed[None])[0]
-    assert executed[0, 0] == pytest.approx(-6.0) and (states[:, 2] >= -1e-9).all() and states[-1, 2] < 0.5
+class _Braking:
+    """Brakes at 6 m/s² every step, whatever its speed."""
+
+    def reset(self, rng, start, me):
+        pass
+
+    def act(self, history):
+        return np.tile([-6.0, 0.0], (len(history), 1))
+
+
+def test_a_car_braking_to_a_stop_in_the_world_does_not_roll_backwards():
+    start = np.array([[[START_X, LANE_CENTRE_Y["right"], 2.0, 0.0, 0.0, 0.0],
+                       [START_X, LANE_CENTRE_Y["left"], 29.0, 0.0, 0.0, 0.0]]])
+    world = run_episodes(start, [_Braking(), ConstantVelocityDriver()], np.random.default_rng(0), max_steps=20,
+                         until_max_steps=True)
+    speeds, accelerations = world.states[0, 0, :, 2], world.states[0, 0, :, 4]
+    assert (speeds >= -1e-9).all() and speeds[-1] == pytest.approx(0.0, abs=1e-9)
+    assert accelerations[1] == -6.0 and (accelerations[1:] >= -6.0).all()  # braked as asked until it stopped
+    np.testing.assert_allclose(world.states[0, 1, :, 2], 29.0)  # the other car untouched
 
 
 def test_a_driver_model_judges_its_proposals_by_the_other_cars_predicted_futures():

@@ -147,10 +147,13 @@ def test_an_earlier_swap_at_the_kept_speed_scores_more_progress():
     (lambda: (car(START_X - 30, 34, LEFT, RIGHT, change=(60, 75)), car(START_X, 28, LEFT)), "no_collision"),
     (lambda: (car(START_X + 10, 30, LEFT, RIGHT, change=(62, 75)), car(START_X, 30, RIGHT, LEFT)), "lane_swap"),
     (lambda: (car(START_X + 10, 30, LEFT, -9.0, change=(15, 40)), car(START_X, 30, RIGHT, LEFT)), "on_road"),
-])
-def test_a_collision_no_swap_before_the_cutoff_or_leaving_the_road_zeroes_the_score(record, multiplier):
-    score = metrics(*record())["score"]
+    (lambda: (car(START_X + 10, 10, LEFT, RIGHT, change=(10, 40)), car(START_X, 30, RIGHT, LEFT)), "reaches_cutoff"),
+])  # the crawling robot (10 m/s) swaps lanes on the road, but is 55 m short of the cutoff after 8 s
+def test_a_collision_no_swap_leaving_the_road_or_not_reaching_the_cutoff_zeroes_the_score(record, multiplier):
+    m = metrics(*record())
+    score = m["score"]
     assert score["score"] == 0.0 and not score["multipliers"][multiplier]
+    assert not m["robot_success"]
 
 
 def test_a_harsh_lane_change_breaks_comfort_and_a_close_cut_breaks_ttc():
@@ -355,6 +358,24 @@ def test_a_run_logged_before_the_precision_option_resumes(inline_run, tmp_path):
     assert simulate(4, "rules", "synthetic", seed=7, out=tmp_path)["reused"] == 4
     with pytest.raises(InputError, match="an episode of another run"):
         simulate(4, "rules", "synthetic", seed=7, out=tmp_path, precision="int8")
+
+
+def test_a_resumed_episode_is_measured_again_by_this_release(inline_run, tmp_path):
+    """An episode logged with other metrics (an earlier release's) gets this release's, in the
+    summary and in its rewritten file; files whose metrics agree are left alone."""
+    out, first = inline_run
+    (tmp_path / "episodes").mkdir()
+    for i in range(4):
+        episode_path(tmp_path, i).write_bytes(episode_path(out, i).read_bytes())
+    stale = load_trials(episode_path(tmp_path, 1))
+    del stale.metadata["episode"]["metrics"]["score"]["multipliers"]["reaches_cutoff"]  # as logged before it
+    stale.metadata["episode"]["metrics"]["score"]["score"] = 0.123
+    stale.write_parquet(episode_path(tmp_path, 1))
+    kept = {i: os.stat(episode_path(tmp_path, i)).st_mtime_ns for i in (0, 2, 3)}
+    summary = simulate(4, "rules", "synthetic", seed=7, out=tmp_path)
+    assert summary["reused"] == 4 and summary["score"] == first["score"]
+    assert records(tmp_path, 4)[1]["metrics"] == records(out, 4)[1]["metrics"]
+    assert {i: os.stat(episode_path(tmp_path, i)).st_mtime_ns for i in (0, 2, 3)} == kept
 
 
 def test_planner_episode_with_a_tiny_budget(tmp_path):

@@ -77,7 +77,8 @@ class Mode:
     ``standoff_exit_cost``: the stand-off exit: while the set-out rule holds the robot in the lane
     it has not yet left (window 0 keeps to it), a candidate whose window 1 does not take the way
     out of the stand-off (:func:`standoff_exit`: its ``motion``'s hardest braking, to drop behind
-    the human, or its hardest acceleration where that gets it clear ahead clearly sooner) costs
+    the human, or its hardest acceleration where that gets it clear ahead clearly sooner or where
+    it cannot drop behind without slowing below :data:`YIELD_SPEED_FLOOR`) costs
     this much: the robot makes room instead of waiting beside the human for room (0: it may
     wait, the paper's).
     ``fallback``: the mode a receding-horizon policy plans in (None: none) from the first plan where
@@ -185,6 +186,11 @@ the sampled futures show, not to their small preferences."""
 YIELD_MARGIN = 0.5
 """How much sooner (s) getting clear ahead must be than dropping behind for a stand-off exit
 (:func:`standoff_exit`) to accelerate: in doubt the robot yields."""
+YIELD_SPEED_FLOOR = 20.0
+"""The slowest (m/s) the stand-off exit brakes the robot to, to drop behind the human
+(:func:`standoff_exit`): about the slowest the real drivers of the 30 recorded trials drove (20.7 m/s,
+docs/closed_loop.md). A human that slows with it to there is yielding; slower, the robot would be a
+hazard on the highway and might not reach the cutoff at all."""
 HUMAN_ACCELERATION_HELD = 0.6
 """How long (s) :func:`standoff_exit` expects the human to hold its present acceleration (then its
 speed): to the end of window 1, by when the next plans have seen what it did instead."""
@@ -257,27 +263,37 @@ def set_outs(actions: np.ndarray, goal: str) -> np.ndarray:
 def standoff_exit(robot: np.ndarray, human: np.ndarray, motion: Motion, gap: float) -> int:
     """The acceleration index of ``motion`` by which the robot leaves a stand-off, from the cars'
     present states ``robot [6]``, ``human [6]``: its hardest acceleration, if that gets it ``gap`` m
-    ahead of the human more than :data:`YIELD_MARGIN` s sooner than its hardest braking gets it
-    ``gap`` m behind (both held from now; the human holding its present acceleration for
-    :data:`HUMAN_ACCELERATION_HELD` s, then its speed); else that braking. A human that brakes or
-    accelerates with the robot makes the other way out the sooner."""
+    ahead of the human more than :data:`YIELD_MARGIN` s sooner than its hardest braking, down to
+    :data:`YIELD_SPEED_FLOOR` and no slower, gets it ``gap`` m behind (both held from now; the human
+    holding its present acceleration for :data:`HUMAN_ACCELERATION_HELD` s, then its speed); else
+    that braking. A human that brakes or accelerates with the robot makes the other way out the
+    sooner; one that slows with the robot to the floor leaves it only the way ahead."""
     dx, dv = robot[0] - human[0], robot[2] - human[2]
+    braking_for = max(robot[2] - YIELD_SPEED_FLOOR, 0.0) / motion.hardest_braking  # s until the floor
     ahead = _time_to_gain(gap - dx, dv, max(motion.accelerations), -human[4])
-    behind = _time_to_gain(gap + dx, -dv, motion.hardest_braking, human[4])
+    behind = _time_to_gain(gap + dx, -dv, motion.hardest_braking, human[4], braking_for)
     return int(np.argmax(motion.accelerations) if ahead + YIELD_MARGIN < behind else np.argmin(motion.accelerations))
 
 
-def _time_to_gain(distance: float, speed: float, acceleration: float, human_part: float) -> float:
+def _time_to_gain(distance: float, speed: float, acceleration: float, human_part: float,
+                  robot_for: float = np.inf) -> float:
     """How long (s) the robot takes to gain ``distance`` (m) on the human from their relative
-    ``speed`` (m/s) at the relative ``acceleration`` (m/s²), plus the human's ``human_part`` (m/s²)
-    for the first :data:`HUMAN_ACCELERATION_HELD` s: 0 where ``distance`` is 0 or less, inf where
-    it never does."""
-    held, first = acceleration + human_part, HUMAN_ACCELERATION_HELD
-    t = _uniform_time_to_gain(distance, speed, held)
-    if t <= first:
-        return t
-    gained = speed * first + 0.5 * held * first * first
-    return first + _uniform_time_to_gain(distance - gained, speed + held * first, acceleration)
+    ``speed`` (m/s) at the relative ``acceleration`` (m/s²) for the first ``robot_for`` s (then
+    holding its speed), plus the human's ``human_part`` (m/s²) for the first
+    :data:`HUMAN_ACCELERATION_HELD` s: 0 where ``distance`` is 0 or less, inf where it never does."""
+    start = 0.0
+    for end in sorted({HUMAN_ACCELERATION_HELD, robot_for, np.inf}):
+        if end <= start:
+            continue
+        relative = (acceleration if start < robot_for else 0.0) + (human_part if start < HUMAN_ACCELERATION_HELD else 0.0)
+        t = _uniform_time_to_gain(distance, speed, relative)
+        if t <= end - start:
+            return start + t
+        span = end - start
+        distance -= speed * span + 0.5 * relative * span * span
+        speed += relative * span
+        start = end
+    return np.inf
 
 
 def _uniform_time_to_gain(distance: float, speed: float, acceleration: float) -> float:
@@ -285,7 +301,7 @@ def _uniform_time_to_gain(distance: float, speed: float, acceleration: float) ->
     if distance <= 0:
         return 0.0
     if abs(acceleration) < 1e-9:
-        return distance / speed if speed > 0 else np.inf
+        return distance / speed if speed > 1e-9 else np.inf
     discriminant = speed * speed + 2 * acceleration * distance
     if discriminant < 0 or acceleration < 0 and speed <= 0:
         return np.inf  # decelerating, it stops gaining first

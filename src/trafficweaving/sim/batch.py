@@ -11,7 +11,9 @@ Output folder ``out``:
 
 A rerun into the same folder reuses every episode whose file loads and was made with the same
 spec (robot, human, seed, model, deadline, budget, device), recomputing only the missing ones (an
-interrupted batch resumes); a file made with another spec is refused. The summary is rebuilt from
+interrupted batch resumes); a file made with another spec is refused. A reused episode's metrics
+are measured again from its states, and its file rewritten where they changed: a rerun brings the
+logs of an earlier release up to this one's metrics. The summary is rebuilt from
 the files of episodes ``0..episodes-1`` (others in the folder are left alone).
 
 Engines: ``local`` runs the episodes in the calling process (``workers = 1``) or in a pool of
@@ -32,6 +34,7 @@ import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from contextlib import contextmanager
+from dataclasses import replace
 from importlib.util import find_spec
 from pathlib import Path
 from typing import Callable, Iterator
@@ -46,7 +49,7 @@ from ..errors import InputError
 from ..model.checkpoint import choose_device
 from ..planning.planner import Budget
 from .episodes import Episode, EpisodeSpec, run_episode
-from .metrics import aggregate
+from .metrics import aggregate, episode_metrics
 
 ENGINES = ("local", "ray")
 RAY_MISSING = "`--engine ray` needs Ray: pip install 'trafficweaving[ray]'"
@@ -68,13 +71,15 @@ def episode_path(out: Path, index: int) -> Path:
 
 
 def _reusable(path: Path, spec: EpisodeSpec, index: int) -> dict | None:
-    """The JSON record of episode ``index`` logged at ``path``, or None when there is no readable
-    log (to compute); InputError when it was made with another spec (a field the log predates
-    counts as its default: a run of an earlier release resumes)."""
+    """The JSON record of episode ``index`` logged at ``path``, its metrics measured again from its
+    states (the file rewritten where they changed), or None when there is no readable log (to
+    compute); InputError when it was made with another spec (a field the log predates counts as
+    its default: a run of an earlier release resumes)."""
     try:
-        record = load_trials(path).metadata.get("episode")
+        trials = load_trials(path)
     except InputError:
         return None
+    record = trials.metadata.get("episode")
     if not isinstance(record, dict) or record.get("index") != index:
         return None
     stored = record.get("spec")
@@ -85,6 +90,10 @@ def _reusable(path: Path, spec: EpisodeSpec, index: int) -> dict | None:
     if not same:
         raise InputError(f"{path}: an episode of another run ({json.dumps(record.get('spec'))}; expected "
                          f"{json.dumps(spec.as_dict())}: use another --out folder)")
+    metrics = episode_metrics(trials.states[0], int(trials.lengths[0]), record["robot_car"])
+    if metrics != record.get("metrics"):  # logged by a release that measured differently
+        record = {**record, "metrics": metrics}
+        replace(trials, metadata={**trials.metadata, "episode": record}).write_parquet(path)
     return record
 
 

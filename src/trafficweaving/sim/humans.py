@@ -23,7 +23,7 @@ import torch
 
 from .. import validate
 from ..data.trials import TrialSet, load_trials
-from ..dynamics import constant_acceleration_future, future_states, without_reversing
+from ..dynamics import constant_acceleration_future, future_states
 from ..errors import InputError
 from ..model.checkpoint import load_model
 from ..model.cvae import CVAE
@@ -207,8 +207,8 @@ class ModelDriver:
 
     def sample(self, histories: np.ndarray, robot_futures: np.ndarray) -> np.ndarray:
         """The next block's accelerations ``[m, 3, 2]`` (m/s²), one model sample per episode, for
-        robot-first ``histories [m, t+1, 2, 6]`` and ``robot_futures [m, 15, 6]``; braking stops
-        the car rather than reversing it (:func:`~trafficweaving.dynamics.without_reversing`)."""
+        robot-first ``histories [m, t+1, 2, 6]`` and ``robot_futures [m, 15, 6]`` (the world stops
+        a car that they would brake to reversing, :class:`~trafficweaving.sim.world.World`)."""
         samples = self._futures(histories, robot_futures, self.proposals)  # [K, m, 15, 2]
         chosen = samples[0]
         if self.proposals > 1:
@@ -228,10 +228,7 @@ class ModelDriver:
             leaves = off[pick, rows].any(-1)  # every proposal leaves the road
             if leaves.any():
                 chosen[leaves] = keep_on_road(histories[leaves, -1, 1], chosen[leaves])
-        block = chosen[:, : self.BLOCK].copy()
-        present = histories[:, -1, 1]  # [m, 6] the driver's car
-        block[..., 0] = without_reversing(present[:, 2], present[:, 4], block[..., 0])
-        return block
+        return chosen[:, : self.BLOCK].copy()
 
     def _futures(self, histories: np.ndarray, robot_futures: np.ndarray, k: int) -> np.ndarray:
         """``k`` sampled futures ``[k, m, 15, 2]`` (m/s²) of the human's accelerations for robot-first

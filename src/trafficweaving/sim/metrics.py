@@ -12,8 +12,8 @@ robot's car index), judged by the scenario's rules
 * ``success``: the robot swapped, no collision, both cars on the road and past the cutoff (the
   outcome is ``valid`` or ``no_lane_swap`` by the human alone);
 * ``robot_success``: the robot's own part of ``success``: it swapped, stayed on the road before
-  the cutoff and did not collide (the score's multipliers, :func:`closed_loop_score`, all 1),
-  whatever the human did (left the road, did not reach the cutoff);
+  the cutoff, reached it and did not collide (the score's multipliers, :func:`closed_loop_score`,
+  all 1), whatever the human did (left the road, did not reach the cutoff);
 * ``collision``: the scenario's rule (``|Δx| < COLLISION_DX`` and ``|Δy| < COLLISION_DY`` at a
   recorded step); ``robot_at_fault``: a collision with the robot at fault, by nuPlan's at-fault
   rule (:func:`~trafficweaving.scenario.at_fault_collision`: the car behind in a rear-end
@@ -183,7 +183,8 @@ def lateral_swings(ydd: np.ndarray) -> int:
 
 def robot_succeeded(score: dict) -> bool:
     """Whether the robot did its part of an episode whose :func:`closed_loop_score` is ``score``:
-    every multiplier 1 (it swapped lanes before the cutoff, stayed on the road, no collision)."""
+    every multiplier 1 (it swapped lanes before the cutoff, stayed on the road, reached the cutoff,
+    no collision)."""
     return all(score["multipliers"].values())
 
 
@@ -192,7 +193,8 @@ def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swappe
     """nuPlan's closed-loop score, adapted to this task, of one episode ``states [2, T, 6]``
     (recorded steps only) for the robot car ``robot``: ``score`` in [0, 1] = the product of the
     ``multipliers`` (each 0 or 1: ``no_collision``; ``on_road``: the robot on the road until it
-    reaches the cutoff; ``lane_swap``: the robot across before the cutoff) times the
+    reaches the cutoff; ``lane_swap``: the robot across before the cutoff; ``reaches_cutoff``: the
+    robot at the cutoff before the episode ends, nuPlan's "making progress") times the
     :data:`SCORE_WEIGHTS` mean of ``ttc`` (1 when the time to collision, :func:`time_to_collision`,
     stays at least :data:`TTC_LIMIT_S` at every step, else 0), ``progress`` (the mean of how much of
     the road to the cutoff was left when the robot crossed the divider and of its mean speed until
@@ -202,7 +204,8 @@ def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swappe
     me, x = states[robot], states[robot, :, 0]
     before_cutoff = np.maximum.accumulate(x) < CUTOFF_X
     multipliers = {"no_collision": outcome != "collision",
-                   "on_road": bool(on_road(me[before_cutoff, 1]).all()), "lane_swap": robot_swapped}
+                   "on_road": bool(on_road(me[before_cutoff, 1]).all()), "lane_swap": robot_swapped,
+                   "reaches_cutoff": bool(x.max() >= CUTOFF_X)}
     ttc = time_to_collision(states[0], states[1])
     road = CUTOFF_X - x[0]
     swap_left = float(np.clip((CUTOFF_X - x[crossed]) / road, 0.0, 1.0)) if crossed is not None and road > 0 else 0.0
@@ -282,7 +285,7 @@ def _group(records: Sequence[dict]) -> dict:
         "min_distance_m": mean_interval(column("min_distance_m")),
         "time_to_swap_s": mean_interval(column("time_to_swap_s")),
         "score": mean_interval([m["score"]["score"] for m in metrics]),
-        "score_parts": {**{k: rate([m["score"]["multipliers"][k] for m in metrics]) for k in ("no_collision", "on_road", "lane_swap")},
+        "score_parts": {**{k: rate([m["score"]["multipliers"][k] for m in metrics]) for k in ("no_collision", "on_road", "lane_swap", "reaches_cutoff")},
                         **{k: mean_interval([m["score"][k] for m in metrics]) for k in SCORE_WEIGHTS}},
         "lane_reversals": {**mean_interval(column("lane_reversals")),
                            "at_most_one": rate([r <= 1 for r in column("lane_reversals")])},

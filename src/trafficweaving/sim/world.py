@@ -3,6 +3,8 @@
 Both cars move by the trapezoid rule (:func:`~trafficweaving.dynamics.trapezoid_step`): each step
 every agent names its acceleration ``[xdd, ydd]`` for the next step, and velocity and position
 follow from the present and the next acceleration, as the authors' recordings of human cars do.
+Braking stops a car; it never rolls backwards (:func:`~trafficweaving.dynamics.without_reversing`
+raises a braking that would reverse it just enough to stop it).
 An episode is recorded until both cars are past ``RECORD_END_X`` (as the authors' recordings
 end) or ``max_steps`` is reached; the scenario's rules (collision, off-road, lane swap before the
 cutoff) are judged on the record by :func:`~trafficweaving.scenario.check_validity`.
@@ -26,7 +28,7 @@ from typing import Protocol, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from ..dynamics import trapezoid_step
+from ..dynamics import trapezoid_step, without_reversing
 from ..scenario import RECORD_END_X, STATE_NAMES
 
 MAX_STEPS = 110
@@ -85,10 +87,11 @@ class World:
 
     def step(self, accelerations: np.ndarray) -> None:
         """Advance every running episode by one step with both cars' accelerations at the next
-        step, ``accelerations [m, 2, 2]`` (episode, car, ``[xdd, ydd]``, m/s²); an episode ends
-        once both cars are past ``RECORD_END_X``."""
+        step, ``accelerations [m, 2, 2]`` (episode, car, ``[xdd, ydd]``, m/s²), a braking that would
+        reverse a car raised to stop it; an episode ends once both cars are past ``RECORD_END_X``."""
         now = self.states[:, :, self.t]
-        acc = np.asarray(accelerations, dtype=float)
+        acc = np.array(accelerations, dtype=float)
+        acc[..., 0] = without_reversing(now[..., 2], now[..., 4], acc[..., :1])[..., 0]
         x, xd = trapezoid_step(now[..., 0], now[..., 2], now[..., 4], acc[..., 0])
         y, yd = trapezoid_step(now[..., 1], now[..., 3], now[..., 5], acc[..., 1])
         self.t += 1
