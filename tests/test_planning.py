@@ -604,11 +604,12 @@ def test_the_set_out_rule_watches_the_gap_while_each_modes_lane_change_crosses_t
             assert mode.set_out_times[0] <= first - 0.45 and mode.set_out_times[-1] >= last + 0.45, name
 
 
-def test_a_mode_falls_back_when_time_runs_short_before_the_robot_has_set_out():
+def test_a_mode_falls_back_when_time_runs_short_or_the_human_ahead_brakes_harder_than_it_can():
     """The fallback plans from the first window the robot, settled in its start lane, would reach the
     cutoff within ``fallback_within`` s, or ``standoff_within`` s while the set-out rule holds it
-    and would still hold it ``fallback_within`` s before the cutoff; not while a lane change is under
-    way."""
+    and would still hold it ``fallback_within`` s before the cutoff, or, settled in either lane, the
+    human ahead in its way brakes harder than the mode's motion can; not while a lane change is
+    under way."""
     comfort, quick = MODES["comfort"], MODES["decisive"]
     mode = replace(comfort, fallback=quick, fallback_within=2.0, standoff_within=3.0)
     keep, go = Action.of(0.0, "right").index, Action.of(0.0, "left").index
@@ -631,6 +632,13 @@ def test_a_mode_falls_back_when_time_runs_short_before_the_robot_has_set_out():
     assert not mode.needs_fallback(car(2.9), car(2.9, speed=25.0, y=LEFT), keep, LEFT)  # clear in time
     assert mode.blocks_set_out(car(2.9), car(2.9, speed=25.0, y=LEFT))
     assert not mode.needs_fallback(car(3.1), car(3.1, y=LEFT), keep, LEFT)
+    # settled in the goal lane behind a human that brakes harder than the comfort motion can: braking is not held to comfort
+    ahead = car(4.0, y=LEFT) + [20.0, 0.0, 0.0, 0.0, -(comfort.motion.hardest_braking + 0.5), 0.0]
+    assert mode.needs_fallback(car(5.0, y=LEFT), ahead, go, LEFT)
+    assert not mode.needs_fallback(car(5.0, y=LEFT), ahead + [0, 0, 0, 0, 1.0, 0], go, LEFT)  # within the motion's braking
+    assert not mode.needs_fallback(car(5.0, y=LEFT, yd=0.5), ahead, go, LEFT)  # not settled
+    assert not mode.needs_fallback(car(5.0), ahead, keep, LEFT)  # in the other lane: not in the robot's way
+    assert not mode.needs_fallback(car(3.0, y=LEFT), ahead, go, LEFT)  # behind the robot
     with pytest.raises(InputError):
         Mode(fallback=mode)  # a fallback has none of its own
     with pytest.raises(InputError):
