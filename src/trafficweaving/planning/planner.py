@@ -237,8 +237,8 @@ nuPlan's comfort limits, with longer lane changes and so a longer look at the ga
 out); ``cautious`` (decisive, judged by the worst 20 % of its sampled futures: CVaR_0.2);
 ``comfort-first`` (comfort, falling back on decisive when the robot has not set out
 :data:`FALLBACK_WITHIN` s before the cutoff, or :data:`STANDOFF_WITHIN` s before it in a
-stand-off; in both, beside the human it makes room: the stand-off exit, :data:`STANDOFF_EXIT_COST`;
-docs/closed_loop.md)."""
+stand-off, or when the human ahead brakes harder than comfort allows; in both, beside the human it
+makes room: the stand-off exit, :data:`STANDOFF_EXIT_COST`; docs/closed_loop.md)."""
 
 
 def risk_cost(scores: torch.Tensor, risk: float) -> torch.Tensor:
@@ -289,19 +289,20 @@ def _time_to_gain(distance: float, speed: float, acceleration: float, human_part
     ``speed`` (m/s) at the relative ``acceleration`` (m/s²) for the first ``robot_for`` s (then
     holding its speed), plus the human's ``human_part`` (m/s²) for the first
     :data:`HUMAN_ACCELERATION_HELD` s: 0 where ``distance`` is 0 or less, inf where it never does."""
+    def relative(t: float) -> float:  # the relative acceleration from time t (s) on
+        return (acceleration if t < robot_for else 0.0) + (human_part if t < HUMAN_ACCELERATION_HELD else 0.0)
+
     start = 0.0
-    for end in sorted({HUMAN_ACCELERATION_HELD, robot_for, np.inf}):
-        if end <= start:
-            continue
-        relative = (acceleration if start < robot_for else 0.0) + (human_part if start < HUMAN_ACCELERATION_HELD else 0.0)
-        t = _uniform_time_to_gain(distance, speed, relative)
+    for end in sorted(b for b in {HUMAN_ACCELERATION_HELD, robot_for} if 0.0 < b < np.inf):
+        held = relative(start)
+        t = _uniform_time_to_gain(distance, speed, held)
         if t <= end - start:
             return start + t
         span = end - start
-        distance -= speed * span + 0.5 * relative * span * span
-        speed += relative * span
+        distance -= speed * span + 0.5 * held * span * span
+        speed += held * span
         start = end
-    return np.inf
+    return start + _uniform_time_to_gain(distance, speed, relative(start))
 
 
 def _uniform_time_to_gain(distance: float, speed: float, acceleration: float) -> float:
