@@ -87,7 +87,7 @@ class Mode:
     where the human ahead brakes harder than the ``motion`` can (:meth:`needs_fallback`), to the
     end of the episode
     (:class:`~.mpc.MPCPolicy`): a comfortable mode that falls back on a quicker one when time runs
-    short."""
+    short or safety needs harder braking."""
 
     motion: Motion = MOTIONS["paper"]
     turn_back_cost: float = 0.0
@@ -132,11 +132,11 @@ class Mode:
         within ``fallback_within`` s; or within ``standoff_within`` s while the set-out rule holds
         it (:meth:`blocks_set_out`) and, both cars keeping their speeds, would still hold it when
         ``fallback_within`` s are left: a stand-off the comfortable mode does not get out of in
-        time; or, settled in either lane, the human is ahead in its way (within
+        time (these two need a goal lane); or, settled in either lane, the human is ahead in its way (within
         :data:`FOLLOW_LATERAL` m sideways) braking harder than this mode's ``motion`` can: braking
         for safety is not held to comfort. A lane change under way is not switched over: the two
         motions' rollouts of it differ."""
-        if self.fallback is None or goal_y is None:
+        if self.fallback is None:
             return False
         lane = Action(first_action).lane
         settled = abs(robot[1] - LANE_CENTRE_Y[lane]) < SETTLED_OFFSET and abs(robot[3]) < SETTLED_SPEED
@@ -144,7 +144,7 @@ class Mode:
             return False
         if human[0] > robot[0] and abs(human[1] - robot[1]) < FOLLOW_LATERAL and -human[4] > self.motion.hardest_braking:
             return True
-        if lane == lane_of(np.array([goal_y]))[0]:
+        if goal_y is None or lane == lane_of(np.array([goal_y]))[0]:
             return False
         seconds_to_cutoff = (CUTOFF_X - robot[0]) / robot[2] if robot[2] > 0 else np.inf
         if seconds_to_cutoff < self.fallback_within:
