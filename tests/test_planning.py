@@ -24,8 +24,8 @@ from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import (FOLLOW_COST, FOLLOW_LATERAL, HUMAN_ACCELERATION_HELD, MODES,
                                              OWN_FUTURES_SHARE, SCREENING_SAMPLES, SET_OUT_COST, SET_OUT_GAP, SHORTLIST,
                                              STANDOFF_EXIT_COST, YIELD_MARGIN, YIELD_SPEED_FLOOR, Budget, Mode, Planner,
-                                             example_history, risk_cost, set_outs, standoff_exit, stopping_shortfall,
-                                             turn_backs)
+                                             brakes_along, example_history, risk_cost, set_outs, standoff_exit,
+                                             stopping_shortfall, turn_backs)
 from trafficweaving.planning.steering import jerk_limited_steer, optimal_time, steer, steering_cost
 from trafficweaving.scenario import COLLISION_DX, CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.sim.world import World
@@ -562,6 +562,46 @@ def test_the_standoff_exit_yields_down_to_the_speed_floor_and_no_further():
         assert motion.accelerations[standoff_exit(robot, human, motion, SET_OUT_GAP)] == way_out
 
 
+def _side_by_side(robot_accelerations, human_accelerations, dx=0.0):
+    """Both cars' states ``[t+1, 2, 6]`` from 29 m/s side by side (the robot ``dx`` m ahead),
+    moving with the accelerations ``[t+1]`` (m/s²) of each (trapezoid rule, as the world)."""
+    cars = []
+    for x, y, acceleration in ((-160.0 + dx, RIGHT, robot_accelerations), (-160.0, LEFT, human_accelerations)):
+        acceleration = np.asarray(acceleration, dtype=float)
+        position, speed = integrate_trapezoid(x, 29.0, acceleration)
+        zeros = np.zeros_like(position)
+        cars.append(np.stack([position, zeros + y, speed, zeros, acceleration, zeros], axis=-1))
+    return np.stack(cars, axis=1)
+
+
+def test_the_way_out_goes_ahead_once_the_human_has_braked_along():
+    """Side by side, the robot has braked at 4 m/s² for a second, then held its speed: the present
+    states alone say drop behind. A human that braked as hard (brakes_along) makes the robot go
+    ahead, also 2 s later, and makes comfort first fall back on the decisive mode; one that kept
+    its speed, braked at half the robot's rate or at twice it (the speeds part: the way ahead opens
+    by itself), or braked along while far ahead (no stand-off), does not."""
+    first = replace(MODES["comfort-first"], standoff_within=0.0)  # beside the human yielding, not time, makes it fall back
+    mode = first.fallback
+    keep = Action.of(0.0, "right").index
+    braking = [0.0] * 5 + [-4.0] * 10 + [0.0]
+    for human, along in ((braking, True), ([0.0] * 16, False), ([0.0] * 5 + [-2.0] * 10 + [0.0], False)):
+        history = _side_by_side(braking, human, dx=2.0 * along - 1.0)  # 1 m behind or ahead: no way ahead before
+        assert brakes_along(history) == along
+        assert mode.motion.accelerations[standoff_exit(*history[-1], mode.motion, SET_OUT_GAP)] == -6.0
+        assert mode.human_yields(history) == along
+        assert mode.motion.accelerations[mode.way_out(history)] == (4.0 if along else -6.0)
+        assert first.needs_fallback(history, keep, LEFT) == along
+    harder = _side_by_side(braking, [0.0] * 5 + [-8.0] * 10 + [0.0], dx=1.0)  # the human braking twice as hard
+    assert not brakes_along(harder) and not mode.human_yields(harder) and not first.needs_fallback(harder, keep, LEFT)
+    assert mode.way_out(harder) == standoff_exit(*harder[-1], mode.motion, SET_OUT_GAP)  # ahead opens by itself
+    later = _side_by_side(braking + [0.0] * 20, braking + [0.0] * 20, dx=1.0)
+    assert not brakes_along(later) and mode.human_yields(later) and first.needs_fallback(later, keep, LEFT)
+    assert mode.motion.accelerations[mode.way_out(later)] == 4.0
+    far = _side_by_side(braking, braking, dx=-30.0)
+    assert brakes_along(far) and not mode.human_yields(far) and not first.needs_fallback(far, keep, LEFT)
+    assert not brakes_along(_side_by_side([0.0] * 3 + [-4.0] * 3, [0.0] * 3 + [-4.0] * 3))  # too short a history
+
+
 def test_the_standoff_exit_makes_room_beside_the_human():
     """2 m behind the human at the same speed, the robot yields (hardest braking); 4 m ahead, or
     beside a human braking at 8 m/s², it goes ahead. The planner costs every other window-1
@@ -617,28 +657,31 @@ def test_a_mode_falls_back_when_time_runs_short_or_the_human_ahead_brakes_harder
     def car(seconds_to_cutoff, speed=30.0, y=RIGHT, yd=0.0):
         return np.array([CUTOFF_X - 30.0 * seconds_to_cutoff, y, speed, yd, 0.0, 0.0])
 
+    def falls_back(mode, robot, human, first_action, goal_y):  # from the present states alone
+        return mode.needs_fallback(np.stack([robot, human])[None], first_action, goal_y)
+
     far = car(5.0, y=LEFT)
-    assert mode.needs_fallback(car(1.95), far, keep, LEFT) and not mode.needs_fallback(car(2.05), far, keep, LEFT)
-    assert not mode.needs_fallback(car(1.0), far, go, LEFT)  # set out: window 0 heads for the goal lane
-    assert not mode.needs_fallback(car(1.0, y=RIGHT + 0.5), far, keep, LEFT)  # turning back, not yet settled
-    assert not mode.needs_fallback(car(1.0, yd=0.5), far, keep, LEFT)
-    assert not mode.needs_fallback(car(1.0), far, keep, None)  # a cost without a goal lane
-    assert not mode.needs_fallback(car(1.0, speed=0.0), far, keep, LEFT)  # standing still
-    assert not comfort.needs_fallback(car(0.5), far, keep, LEFT)  # no fallback
+    assert falls_back(mode, car(1.95), far, keep, LEFT) and not falls_back(mode, car(2.05), far, keep, LEFT)
+    assert not falls_back(mode, car(1.0), far, go, LEFT)  # set out: window 0 heads for the goal lane
+    assert not falls_back(mode, car(1.0, y=RIGHT + 0.5), far, keep, LEFT)  # turning back, not yet settled
+    assert not falls_back(mode, car(1.0, yd=0.5), far, keep, LEFT)
+    assert not falls_back(mode, car(1.0), far, keep, None)  # a cost without a goal lane
+    assert not falls_back(mode, car(1.0, speed=0.0), far, keep, LEFT)  # standing still
+    assert not falls_back(comfort, car(0.5), far, keep, LEFT)  # no fallback
     # a stand-off: beside the human at its speed 2.9 s before the cutoff; not when drifting apart, or earlier
     assert mode.blocks_set_out(car(2.9), car(2.9, y=LEFT)) and not mode.blocks_set_out(car(2.9), far)
     assert not mode.blocks_set_out(car(2.9), car(2.9))  # the human in the robot's lane
-    assert mode.needs_fallback(car(2.9), car(2.9, y=LEFT), keep, LEFT)
-    assert not mode.needs_fallback(car(2.9), car(2.9, speed=25.0, y=LEFT), keep, LEFT)  # clear in time
+    assert falls_back(mode, car(2.9), car(2.9, y=LEFT), keep, LEFT)
+    assert not falls_back(mode, car(2.9), car(2.9, speed=25.0, y=LEFT), keep, LEFT)  # clear in time
     assert mode.blocks_set_out(car(2.9), car(2.9, speed=25.0, y=LEFT))
-    assert not mode.needs_fallback(car(3.1), car(3.1, y=LEFT), keep, LEFT)
+    assert not falls_back(mode, car(3.1), car(3.1, y=LEFT), keep, LEFT)
     # settled in the goal lane behind a human that brakes harder than the comfort motion can: braking is not held to comfort
     ahead = car(4.0, y=LEFT) + [20.0, 0.0, 0.0, 0.0, -(comfort.motion.hardest_braking + 0.5), 0.0]
-    assert mode.needs_fallback(car(5.0, y=LEFT), ahead, go, LEFT)
-    assert not mode.needs_fallback(car(5.0, y=LEFT), ahead + [0, 0, 0, 0, 1.0, 0], go, LEFT)  # within the motion's braking
-    assert not mode.needs_fallback(car(5.0, y=LEFT, yd=0.5), ahead, go, LEFT)  # not settled
-    assert not mode.needs_fallback(car(5.0), ahead, keep, LEFT)  # in the other lane: not in the robot's way
-    assert not mode.needs_fallback(car(3.0, y=LEFT), ahead, go, LEFT)  # behind the robot
+    assert falls_back(mode, car(5.0, y=LEFT), ahead, go, LEFT)
+    assert not falls_back(mode, car(5.0, y=LEFT), ahead + [0, 0, 0, 0, 1.0, 0], go, LEFT)  # within the motion's braking
+    assert not falls_back(mode, car(5.0, y=LEFT, yd=0.5), ahead, go, LEFT)  # not settled
+    assert not falls_back(mode, car(5.0), ahead, keep, LEFT)  # in the other lane: not in the robot's way
+    assert not falls_back(mode, car(3.0, y=LEFT), ahead, go, LEFT)  # behind the robot
     with pytest.raises(InputError):
         Mode(fallback=mode)  # a fallback has none of its own
     with pytest.raises(InputError):

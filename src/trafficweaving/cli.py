@@ -773,8 +773,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="closed-loop episodes of a robot against a human, with metrics and CIs")
     p.add_argument("--episodes", type=POSITIVE, required=True, help="episodes 0..N-1 (each from --seed and its index)")
     p.add_argument("--robot", default="planner", help="planner (default: within nuPlan's comfort limits until time "
-                                                      "runs short or the human ahead brakes hard, then decisive; "
-                                                      "makes room beside the human), "
+                                                      "runs short, the human beside brakes along with it or the "
+                                                      "human ahead brakes hard, then decisive; makes room beside "
+                                                      "the human), "
                                                       "planner-decisive (keeps to a lane change and settles on the "
                                                       "lane centre), planner-paper (the paper's exactly), "
                                                       "planner-comfort (within nuPlan's comfort limits), "

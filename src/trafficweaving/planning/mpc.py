@@ -92,7 +92,7 @@ class MPCPolicy:
             robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: robot, human
             clock = time.perf_counter()
             plan = self.planner.plan(robot_first, self.next_fixed, self.cost, budget=self.budget, deadline=self.deadline,
-                                     mode=self.plan_mode(robot_first[-1], self.next_fixed))
+                                     mode=self.plan_mode(robot_first, self.next_fixed))
             self.latencies.append(time.perf_counter() - clock)
             self.plans.append(plan)
             self.plan_steps.append(history.shape[2] - 1)
@@ -100,12 +100,12 @@ class MPCPolicy:
             self.queue = list(plan.robot[:STEPS_PER_WINDOW])
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
 
-    def plan_mode(self, present: np.ndarray, first_action: int) -> Mode:
-        """The mode of the plan from the present states ``present [2, 6]`` (robot, human) with window 0
+    def plan_mode(self, history: np.ndarray, first_action: int) -> Mode:
+        """The mode of the plan from both cars' states ``history [t+1, 2, 6]`` (robot, human) with window 0
         fixed to ``first_action``: the planner's, or its fallback from the first plan that needs it
         to the end of the episode (:meth:`~.planner.Mode.needs_fallback`; :attr:`fallen_back`)."""
         own = self.planner.mode
-        self.fallen_back = self.fallen_back or own.needs_fallback(*present, first_action,
+        self.fallen_back = self.fallen_back or own.needs_fallback(history, first_action,
                                                                   getattr(self.cost, "goal_y", None))
         return own.fallback if self.fallen_back else own
 
@@ -171,7 +171,7 @@ class NonBlockingMPCPolicy(MPCPolicy):
             self.queue = list(rollout(robot_now, np.array([[self.window]]), self.motion)[0])
             if self._pending is None:
                 robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: a copy
-                mode = self.plan_mode(robot_first[-1], self.window)
+                mode = self.plan_mode(robot_first, self.window)
                 self._pending = (t, self._executor.submit(self._plan, robot_first, self.window, mode))
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
 

@@ -29,7 +29,7 @@ from .. import validate
 from ..dynamics import future_states
 from ..errors import InputError
 from ..scenario import (CAR_WIDTH, COLLISION_DX, COLLISION_DY, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANES,
-                        STATE_NAMES, lane_of)
+                        REPLAN_STEPS, STATE_NAMES, lane_of)
 from .candidates import (MOTIONS, N_ACTIONS, N_CANDIDATES, STEPS_PER_WINDOW, WINDOWS, Action, Candidates, Motion,
                          acceleration_indices, robot_candidates)
 from .costs import Cost
@@ -76,16 +76,16 @@ class Mode:
     it can stop in, or steers out of the way (0: no rule, the paper's).
     ``standoff_exit_cost``: the stand-off exit: while the set-out rule holds the robot in the lane
     it has not yet left (window 0 keeps to it), a candidate whose window 1 does not take the way
-    out of the stand-off (:func:`standoff_exit`: its ``motion``'s hardest braking, to drop behind
-    the human, or its hardest acceleration where that gets it clear ahead clearly sooner or where
-    it cannot drop behind without slowing below :data:`YIELD_SPEED_FLOOR`) costs
-    this much: the robot makes room instead of waiting beside the human for room (0: it may
-    wait, the paper's).
+    out of the stand-off (:meth:`way_out`: its ``motion``'s hardest braking, to drop behind
+    the human, or its hardest acceleration where that gets it clear ahead clearly sooner, where
+    it cannot drop behind without slowing below :data:`YIELD_SPEED_FLOOR`, or once the human has
+    braked along with it) costs this much: the robot makes room instead of waiting beside the human
+    for room (0: it may wait, the paper's).
     ``fallback``: the mode a receding-horizon policy plans in (None: none) from the first plan where
     the robot has not set out for the goal lane and would reach the cutoff within
     ``fallback_within`` s at its present speed, or within ``standoff_within`` s in a stand-off, or
-    where the human ahead brakes harder than the ``motion`` can (:meth:`needs_fallback`), to the
-    end of the episode
+    is in a stand-off with a human that has braked along with it, or where the human ahead brakes
+    harder than the ``motion`` can (:meth:`needs_fallback`), to the end of the episode
     (:class:`~.mpc.MPCPolicy`): a comfortable mode that falls back on a quicker one when time runs
     short or safety needs harder braking."""
 
@@ -122,22 +122,25 @@ class Mode:
         crossing_gaps = robot[0] - human[0] + (robot[2] - human[2]) * (after + self.set_out_times)
         return bool(np.abs(crossing_gaps).min() < self.set_out_gap and abs(robot[1] - human[1]) >= CAR_WIDTH)
 
-    def needs_fallback(self, robot: np.ndarray, human: np.ndarray, first_action: int, goal_y: float | None) -> bool:
-        """Whether a plan from the cars' present states ``robot [6]`` and ``human [6]``, the robot
-        executing the action ``first_action`` (window 0), towards the lane centre ``goal_y`` (m;
-        None: no goal lane) falls back on the ``fallback`` mode: the robot has not set out (window
-        0 keeps to its lane, and it is within :data:`SETTLED_OFFSET` m of its centre and moving
-        sideways slower than :data:`SETTLED_SPEED` m/s) and would reach
+    def needs_fallback(self, history: np.ndarray, first_action: int, goal_y: float | None) -> bool:
+        """Whether a plan from both cars' states ``history [t+1, 2, 6]`` (robot, human; the present
+        last), the robot executing the action ``first_action`` (window 0), towards the lane centre
+        ``goal_y`` (m; None: no goal lane) falls back on the ``fallback`` mode: the robot has not
+        set out (window 0 keeps to its lane, and it is within :data:`SETTLED_OFFSET` m of its
+        centre and moving sideways slower than :data:`SETTLED_SPEED` m/s) and would reach
         :data:`~trafficweaving.scenario.CUTOFF_X` at its present speed (standing still: never)
         within ``fallback_within`` s; or within ``standoff_within`` s while the set-out rule holds
         it (:meth:`blocks_set_out`) and, both cars keeping their speeds, would still hold it when
         ``fallback_within`` s are left: a stand-off the comfortable mode does not get out of in
-        time (these two need a goal lane); or, settled in either lane, the human is ahead in its way (within
-        :data:`FOLLOW_LATERAL` m sideways) braking harder than this mode's ``motion`` can: braking
-        for safety is not held to comfort. A lane change under way is not switched over: the two
-        motions' rollouts of it differ."""
+        time; or while the set-out rule holds it and the human has braked along with it
+        (:meth:`human_yields`): the comfortable motion's acceleration is too gentle to get ahead
+        of a human that answers it (these three need a goal lane); or, settled in either lane,
+        the human is ahead in its way (within :data:`FOLLOW_LATERAL` m sideways) braking harder
+        than this mode's ``motion`` can: braking for safety is not held to comfort. A lane change
+        under way is not switched over: the two motions' rollouts of it differ."""
         if self.fallback is None:
             return False
+        robot, human = history[-1]
         lane = Action(first_action).lane
         settled = abs(robot[1] - LANE_CENTRE_Y[lane]) < SETTLED_OFFSET and abs(robot[3]) < SETTLED_SPEED
         if not settled:
@@ -147,12 +150,33 @@ class Mode:
         if goal_y is None or lane == lane_of(np.array([goal_y]))[0]:
             return False
         seconds_to_cutoff = (CUTOFF_X - robot[0]) / robot[2] if robot[2] > 0 else np.inf
-        if seconds_to_cutoff < self.fallback_within:
+        if seconds_to_cutoff < self.fallback_within or self.blocks_set_out(robot, human) and self.human_yields(history):
             return True
         if seconds_to_cutoff >= self.standoff_within:
             return False
         return (self.blocks_set_out(robot, human)
                 and self.blocks_set_out(robot, human, after=seconds_to_cutoff - self.fallback_within))
+
+    def human_yields(self, history: np.ndarray) -> bool:
+        """Whether the human has braked with the robot (:func:`brakes_along`) at a plan time of
+        ``history [t+1, 2, 6]`` (robot, human; every ``REPLAN_STEPS`` steps back from the last)
+        where the set-out rule held the robot (:meth:`blocks_set_out`): both yielding, neither
+        makes room, so the robot goes ahead from then on (:meth:`way_out`)."""
+        return any(self.blocks_set_out(*history[end - 1]) and brakes_along(history[:end])
+                   for end in range(len(history), 0, -REPLAN_STEPS))
+
+    def way_out(self, history: np.ndarray) -> int:
+        """The acceleration index of the ``motion`` by which the robot leaves a stand-off, from both
+        cars' states ``history [t+1, 2, 6]`` (robot, human): its hardest acceleration once the human
+        has braked along with it (:meth:`human_yields`) where it can get clear ahead at all, else
+        :func:`standoff_exit` from the present states."""
+        robot, human = history[-1]
+        ahead = int(np.argmax(self.motion.accelerations))
+        possible = np.isfinite(_time_to_gain(self.set_out_gap - (robot[0] - human[0]), robot[2] - human[2],
+                                             max(self.motion.accelerations), -human[4]))
+        if possible and self.human_yields(history):
+            return ahead
+        return standoff_exit(robot, human, self.motion, self.set_out_gap)
 
     @property
     def set_out_times(self) -> np.ndarray:
@@ -199,6 +223,17 @@ YIELD_SPEED_FLOOR = 20.0
 (:func:`standoff_exit`): about the slowest the real drivers of the 30 recorded trials drove (20.7 m/s,
 docs/closed_loop.md). A human that slows with it to there is yielding; slower, the robot would be a
 hazard on the highway and might not reach the cutoff at all."""
+BRAKING_ALONG_SLOWED = 1.0
+"""How much (m/s) the robot must have slowed in the last :data:`HUMAN_ACCELERATION_HELD` s for
+:func:`brakes_along` to judge whether the human braked with it."""
+BRAKING_ALONG_LEVEL = 1.0
+"""How close (m/s) the cars' speeds are while the human brakes along with the robot
+(:func:`brakes_along`): the robot's braking has opened no gap; where the human brakes harder, the
+way ahead opens by itself."""
+BRAKING_ALONG_SHARE = 0.7
+"""The share of the robot's slowing by which the human slows too when it brakes along with it
+(:func:`brakes_along`): the robot's braking opens less than a third of the speed difference it
+would open against a human keeping its speed."""
 HUMAN_ACCELERATION_HELD = 0.6
 """How long (s) :func:`standoff_exit` expects the human to hold its present acceleration (then its
 speed): to the end of window 1, by when the next plans have seen what it did instead."""
@@ -237,8 +272,9 @@ nuPlan's comfort limits, with longer lane changes and so a longer look at the ga
 out); ``cautious`` (decisive, judged by the worst 20 % of its sampled futures: CVaR_0.2);
 ``comfort-first`` (comfort, falling back on decisive when the robot has not set out
 :data:`FALLBACK_WITHIN` s before the cutoff, or :data:`STANDOFF_WITHIN` s before it in a
-stand-off, or when the human ahead brakes harder than comfort allows; in both, beside the human it
-makes room: the stand-off exit, :data:`STANDOFF_EXIT_COST`; docs/closed_loop.md)."""
+stand-off, or in a stand-off once the human has braked along with it, or when the human ahead brakes
+harder than comfort allows; in both, beside the human it makes room: the stand-off exit,
+:data:`STANDOFF_EXIT_COST`; docs/closed_loop.md)."""
 
 
 def risk_cost(scores: torch.Tensor, risk: float) -> torch.Tensor:
@@ -281,6 +317,19 @@ def standoff_exit(robot: np.ndarray, human: np.ndarray, motion: Motion, gap: flo
     ahead = _time_to_gain(gap - dx, dv, max(motion.accelerations), -human[4])
     behind = _time_to_gain(gap + dx, -dv, motion.hardest_braking, human[4], braking_for)
     return int(np.argmax(motion.accelerations) if ahead + YIELD_MARGIN < behind else np.argmin(motion.accelerations))
+
+
+def brakes_along(history: np.ndarray) -> bool:
+    """Whether the human brakes with the robot, from both cars' states ``history [t+1, 2, 6]``:
+    over the last :data:`HUMAN_ACCELERATION_HELD` s the robot slowed by more than
+    :data:`BRAKING_ALONG_SLOWED` m/s and the human by at least :data:`BRAKING_ALONG_SHARE` as much,
+    and their speeds now differ by less than :data:`BRAKING_ALONG_LEVEL` m/s."""
+    steps = round(HUMAN_ACCELERATION_HELD / DT)
+    if len(history) <= steps:
+        return False
+    robot_slowed, human_slowed = history[-1 - steps, :, 2] - history[-1, :, 2]
+    level = abs(history[-1, 0, 2] - history[-1, 1, 2]) < BRAKING_ALONG_LEVEL
+    return bool(robot_slowed > BRAKING_ALONG_SLOWED and human_slowed >= BRAKING_ALONG_SHARE * robot_slowed and level)
 
 
 def _time_to_gain(distance: float, speed: float, acceleration: float, human_part: float,
@@ -503,7 +552,7 @@ class Planner:
         setting out beside the human (:func:`set_outs`, while the human would be less than
         ``set_out_gap`` ahead or behind as the robot moves across, and is not in the robot's lane),
         and then, before it has set out, not taking the way out of the stand-off
-        (:func:`standoff_exit`, with ``standoff_exit_cost``); and coming short of stopping behind it
+        (:meth:`Mode.way_out`, with ``standoff_exit_cost``); and coming short of stopping behind it
         (:func:`stopping_shortfall`, with ``follow_braking``)."""
         goal_y = getattr(cost, "goal_y", None)
         rules = np.zeros(len(candidates))
@@ -516,8 +565,8 @@ class Planner:
             if mode.blocks_set_out(robot, human):
                 rules += SET_OUT_COST * set_outs(candidates.actions, goal)
                 if mode.standoff_exit_cost and Action(int(candidates.actions[0, 0])).lane != goal:  # not set out
-                    way_out = standoff_exit(robot, human, mode.motion, mode.set_out_gap)
-                    rules += mode.standoff_exit_cost * (acceleration_indices(candidates.actions[:, 1]) != way_out)
+                    way = mode.way_out(history)
+                    rules += mode.standoff_exit_cost * (acceleration_indices(candidates.actions[:, 1]) != way)
         if mode.follow_braking:
             rules += FOLLOW_COST * stopping_shortfall(history[-1, 0], candidates.states, history[-1, 1],
                                                       mode.follow_braking, mode.motion)
