@@ -145,12 +145,14 @@ class Mode:
         settled = abs(robot[1] - LANE_CENTRE_Y[lane]) < SETTLED_OFFSET and abs(robot[3]) < SETTLED_SPEED
         if not settled:
             return False
-        if human[0] > robot[0] and abs(human[1] - robot[1]) < FOLLOW_LATERAL and -human[4] > self.motion.hardest_braking:
+        in_way_ahead = human[0] > robot[0] and abs(human[1] - robot[1]) < FOLLOW_LATERAL
+        if in_way_ahead and -human[4] > self.motion.hardest_braking:
             return True
         if goal_y is None or lane == lane_of(np.array([goal_y]))[0]:
             return False
         seconds_to_cutoff = (CUTOFF_X - robot[0]) / robot[2] if robot[2] > 0 else np.inf
-        if seconds_to_cutoff < self.fallback_within or self.blocks_set_out(robot, human) and self.human_yields(history):
+        yielding = self.blocks_set_out(robot, human) and self.human_yields(history)  # both yielding beside each other
+        if seconds_to_cutoff < self.fallback_within or yielding:
             return True
         if seconds_to_cutoff >= self.standoff_within:
             return False
@@ -171,11 +173,9 @@ class Mode:
         has braked along with it (:meth:`human_yields`) where it can get clear ahead at all, else
         :func:`standoff_exit` from the present states."""
         robot, human = history[-1]
-        ahead = int(np.argmax(self.motion.accelerations))
-        possible = np.isfinite(_time_to_gain(self.set_out_gap - (robot[0] - human[0]), robot[2] - human[2],
-                                             max(self.motion.accelerations), -human[4]))
-        if possible and self.human_yields(history):
-            return ahead
+        ahead_possible = np.isfinite(_time_to_clear_ahead(robot, human, self.motion, self.set_out_gap))
+        if ahead_possible and self.human_yields(history):
+            return int(np.argmax(self.motion.accelerations))
         return standoff_exit(robot, human, self.motion, self.set_out_gap)
 
     @property
@@ -314,9 +314,16 @@ def standoff_exit(robot: np.ndarray, human: np.ndarray, motion: Motion, gap: flo
     sooner; one that slows with the robot to the floor leaves it only the way ahead."""
     dx, dv = robot[0] - human[0], robot[2] - human[2]
     braking_for = max(robot[2] - YIELD_SPEED_FLOOR, 0.0) / motion.hardest_braking  # s until the floor
-    ahead = _time_to_gain(gap - dx, dv, max(motion.accelerations), -human[4])
     behind = _time_to_gain(gap + dx, -dv, motion.hardest_braking, human[4], braking_for)
+    ahead = _time_to_clear_ahead(robot, human, motion, gap)
     return int(np.argmax(motion.accelerations) if ahead + YIELD_MARGIN < behind else np.argmin(motion.accelerations))
+
+
+def _time_to_clear_ahead(robot: np.ndarray, human: np.ndarray, motion: Motion, gap: float) -> float:
+    """How long (s) the robot ``robot [6]``, at ``motion``'s hardest acceleration from now, takes to
+    get ``gap`` m ahead of the human ``human [6]`` holding its present acceleration for
+    :data:`HUMAN_ACCELERATION_HELD` s, then its speed (inf: never)."""
+    return _time_to_gain(gap - (robot[0] - human[0]), robot[2] - human[2], max(motion.accelerations), -human[4])
 
 
 def brakes_along(history: np.ndarray) -> bool:
