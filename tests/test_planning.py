@@ -537,18 +537,23 @@ def _seconds_to_clear(robot, human, acceleration, gap, ahead, floor=-np.inf):
 
 @settings(max_examples=300, deadline=None)
 @given(st.floats(-12.0, 12.0), st.floats(-4.0, 4.0), st.floats(-8.0, 4.0), st.floats(14.0, 32.0),
-       st.sampled_from(["settled", "comfort"]))
-def test_the_standoff_exit_takes_the_sooner_way_out_and_yields_in_doubt(dx, dv, human_acceleration, speed, motion_name):
-    """Against brute force, the robot braking to YIELD_SPEED_FLOOR and no slower."""
+       st.sampled_from(["settled", "comfort"]), st.sampled_from(["holding", "accelerating", "braking"]))
+def test_the_standoff_exit_takes_the_sooner_way_out_and_keeps_to_the_present_one_in_doubt(
+        dx, dv, human_acceleration, speed, motion_name, present):
+    """Against brute force, the robot braking to YIELD_SPEED_FLOOR and no slower: in doubt (neither
+    way out YIELD_MARGIN s sooner) it yields, unless it is accelerating already."""
     motion = MOTIONS[motion_name]
+    robot_acceleration = {"holding": 0.0, "accelerating": max(motion.accelerations),
+                          "braking": -motion.hardest_braking}[present]
     human = np.array([-100.0, LEFT, speed, 0.0, human_acceleration, 0.0])
-    robot = human + [dx, RIGHT - LEFT, dv, 0.0, -human_acceleration, 0.0]
+    robot = np.array([-100.0 + dx, RIGHT, speed + dv, 0.0, robot_acceleration, 0.0])
     ahead = _seconds_to_clear(robot, human, max(motion.accelerations), SET_OUT_GAP, True)
     behind = _seconds_to_clear(robot, human, -motion.hardest_braking, SET_OUT_GAP, False, YIELD_SPEED_FLOOR)
     way_out = motion.accelerations[standoff_exit(robot, human, motion, SET_OUT_GAP)]
-    if ahead + YIELD_MARGIN < behind - 2e-3:
+    doubt = ahead + YIELD_MARGIN > behind + 2e-3 and behind + YIELD_MARGIN > ahead + 2e-3  # neither clearly sooner
+    if ahead + YIELD_MARGIN < behind - 2e-3 or doubt and present == "accelerating":
         assert way_out == max(motion.accelerations)
-    elif ahead + YIELD_MARGIN > behind + 2e-3 or ahead == behind == np.inf:
+    elif behind + YIELD_MARGIN < ahead - 2e-3 or (doubt or ahead == behind == np.inf) and present != "accelerating":
         assert way_out == -motion.hardest_braking
 
 
@@ -647,9 +652,9 @@ def test_the_set_out_rule_watches_the_gap_while_each_modes_lane_change_crosses_t
 def test_a_mode_falls_back_when_time_runs_short_or_the_human_ahead_brakes_harder_than_it_can():
     """The fallback plans from the first window the robot, settled in its start lane, would reach the
     cutoff within ``fallback_within`` s, or ``standoff_within`` s while the set-out rule holds it
-    and would still hold it ``fallback_within`` s before the cutoff, or, settled in either lane, the
-    human ahead in its way brakes harder than the mode's motion can; not while a lane change is
-    under way."""
+    and would still hold it ``fallback_within`` s before the cutoff (not while a lane change is
+    under way), or, in either lane or moving between them, the human ahead in its way brakes harder
+    than the mode's motion can."""
     comfort, quick = MODES["comfort"], MODES["decisive"]
     mode = replace(comfort, fallback=quick, fallback_within=2.0, standoff_within=3.0)
     keep, go = Action.of(0.0, "right").index, Action.of(0.0, "left").index
@@ -679,7 +684,8 @@ def test_a_mode_falls_back_when_time_runs_short_or_the_human_ahead_brakes_harder
     ahead = car(4.0, y=LEFT) + [20.0, 0.0, 0.0, 0.0, -(comfort.motion.hardest_braking + 0.5), 0.0]
     assert falls_back(mode, car(5.0, y=LEFT), ahead, go, LEFT)
     assert not falls_back(mode, car(5.0, y=LEFT), ahead + [0, 0, 0, 0, 1.0, 0], go, LEFT)  # within the motion's braking
-    assert not falls_back(mode, car(5.0, y=LEFT, yd=0.5), ahead, go, LEFT)  # not settled
+    assert falls_back(mode, car(5.0, y=LEFT, yd=0.5), ahead, go, LEFT)  # not settled: nor put off
+    assert falls_back(mode, car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), ahead, go, LEFT)  # moving across
     assert not falls_back(mode, car(5.0), ahead, keep, LEFT)  # in the other lane: not in the robot's way
     assert not falls_back(mode, car(3.0, y=LEFT), ahead, go, LEFT)  # behind the robot
     with pytest.raises(InputError):

@@ -134,20 +134,21 @@ class Mode:
         ``fallback_within`` s are left: a stand-off the comfortable mode does not get out of in
         time; or while the set-out rule holds it and the human has braked along with it
         (:meth:`human_yields`): the comfortable motion's acceleration is too gentle to get ahead
-        of a human that answers it (these three need a goal lane); or, settled in either lane,
-        the human is ahead in its way (within :data:`FOLLOW_LATERAL` m sideways) braking harder
-        than this mode's ``motion`` can: braking for safety is not held to comfort. A lane change
-        under way is not switched over: the two motions' rollouts of it differ."""
+        of a human that answers it (these three need a goal lane). Or, in either lane or moving
+        between them, the human is ahead in its way (within :data:`FOLLOW_LATERAL` m sideways)
+        braking harder than this mode's ``motion`` can: braking for safety is not held to comfort,
+        nor put off until a lane change is done. A lane change under way is not switched over
+        otherwise: the two motions' rollouts of it differ."""
         if self.fallback is None:
             return False
         robot, human = history[-1]
+        in_way_ahead = human[0] > robot[0] and abs(human[1] - robot[1]) < FOLLOW_LATERAL
+        if in_way_ahead and -human[4] > self.motion.hardest_braking:
+            return True
         lane = Action(first_action).lane
         settled = abs(robot[1] - LANE_CENTRE_Y[lane]) < SETTLED_OFFSET and abs(robot[3]) < SETTLED_SPEED
         if not settled:
             return False
-        in_way_ahead = human[0] > robot[0] and abs(human[1] - robot[1]) < FOLLOW_LATERAL
-        if in_way_ahead and -human[4] > self.motion.hardest_braking:
-            return True
         if goal_y is None or lane == lane_of(np.array([goal_y]))[0]:
             return False
         seconds_to_cutoff = (CUTOFF_X - robot[0]) / robot[2] if robot[2] > 0 else np.inf
@@ -310,13 +311,17 @@ def standoff_exit(robot: np.ndarray, human: np.ndarray, motion: Motion, gap: flo
     ahead of the human more than :data:`YIELD_MARGIN` s sooner than its hardest braking, down to
     :data:`YIELD_SPEED_FLOOR` and no slower, gets it ``gap`` m behind (both held from now; the human
     holding its present acceleration for :data:`HUMAN_ACCELERATION_HELD` s, then its speed); else
-    that braking. A human that brakes or accelerates with the robot makes the other way out the
-    sooner; one that slows with the robot to the floor leaves it only the way ahead."""
+    that braking. A robot already accelerating (the way out the last plan chose) keeps going ahead
+    unless braking is that much sooner: each window it executes changes the cars' speeds, and
+    without that the way out could turn at every plan. A human that brakes or accelerates with the
+    robot makes the other way out the sooner; one that slows with the robot to the floor leaves it
+    only the way ahead."""
     dx, dv = robot[0] - human[0], robot[2] - human[2]
     braking_for = max(robot[2] - YIELD_SPEED_FLOOR, 0.0) / motion.hardest_braking  # s until the floor
     behind = _time_to_gain(gap + dx, -dv, motion.hardest_braking, human[4], braking_for)
     ahead = _time_to_clear_ahead(robot, human, motion, gap)
-    return int(np.argmax(motion.accelerations) if ahead + YIELD_MARGIN < behind else np.argmin(motion.accelerations))
+    go_ahead = not behind + YIELD_MARGIN < ahead if robot[4] > 0 else ahead + YIELD_MARGIN < behind
+    return int(np.argmax(motion.accelerations) if go_ahead else np.argmin(motion.accelerations))
 
 
 def _time_to_clear_ahead(robot: np.ndarray, human: np.ndarray, motion: Motion, gap: float) -> float:
