@@ -218,7 +218,8 @@ adds to a candidate's mean (66,000 / 32), so the way out gives way to a risk of 
 the sampled futures show, not to their small preferences."""
 YIELD_MARGIN = 0.5
 """How much sooner (s) getting clear ahead must be than dropping behind for a stand-off exit
-(:func:`standoff_exit`) to accelerate: in doubt the robot yields."""
+(:func:`standoff_exit`) to accelerate, and dropping behind than getting ahead for an accelerating
+robot to turn: in doubt the robot yields, or keeps going ahead once it is."""
 YIELD_SPEED_FLOOR = 20.0
 """The slowest (m/s) the stand-off exit brakes the robot to, to drop behind the human
 (:func:`standoff_exit`): about the slowest the real drivers of the 30 recorded trials drove (20.7 m/s,
