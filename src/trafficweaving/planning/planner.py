@@ -85,7 +85,7 @@ class Mode:
     the robot has not set out for the goal lane and would reach the cutoff within
     ``fallback_within`` s at its present speed, or within ``standoff_within`` s in a stand-off, or
     is in a stand-off with a human that has braked along with it, or where the human ahead brakes
-    harder than the ``motion`` can (:meth:`needs_fallback`), to the end of the episode
+    harder than the ``motion`` can, in a lane change too (:meth:`needs_fallback`), to the end of the episode
     (:class:`~.mpc.MPCPolicy`): a comfortable mode that falls back on a quicker one when time runs
     short or safety needs harder braking."""
 
@@ -152,12 +152,13 @@ class Mode:
         if goal_y is None or lane == lane_of(np.array([goal_y]))[0]:
             return False
         seconds_to_cutoff = (CUTOFF_X - robot[0]) / robot[2] if robot[2] > 0 else np.inf
-        yielding = self.blocks_set_out(robot, human) and self.human_yields(history)  # both yielding beside each other
-        if seconds_to_cutoff < self.fallback_within or yielding:
+        if seconds_to_cutoff < self.fallback_within:
             return True
-        if seconds_to_cutoff >= self.standoff_within:
+        if not self.blocks_set_out(robot, human):
             return False
-        return (self.blocks_set_out(robot, human)
+        if self.human_yields(history):  # both yielding beside each other
+            return True
+        return (seconds_to_cutoff < self.standoff_within
                 and self.blocks_set_out(robot, human, after=seconds_to_cutoff - self.fallback_within))
 
     def human_yields(self, history: np.ndarray) -> bool:
