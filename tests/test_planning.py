@@ -595,15 +595,15 @@ def test_the_way_out_goes_ahead_once_the_human_has_braked_along():
         assert mode.motion.accelerations[standoff_exit(*history[-1], mode.motion, SET_OUT_GAP)] == -6.0
         assert mode.human_yields(history) == along
         assert mode.motion.accelerations[mode.way_out(history)] == (4.0 if along else -6.0)
-        assert first.needs_fallback(history, keep, LEFT) == along
+        assert first.fallback_for(history, keep, LEFT) is (mode if along else None)
     harder = _side_by_side(braking, [0.0] * 5 + [-8.0] * 10 + [0.0], dx=1.0)  # the human braking twice as hard
-    assert not brakes_along(harder) and not mode.human_yields(harder) and not first.needs_fallback(harder, keep, LEFT)
+    assert not brakes_along(harder) and not mode.human_yields(harder) and first.fallback_for(harder, keep, LEFT) is None
     assert mode.way_out(harder) == standoff_exit(*harder[-1], mode.motion, SET_OUT_GAP)  # ahead opens by itself
     later = _side_by_side(braking + [0.0] * 20, braking + [0.0] * 20, dx=1.0)
-    assert not brakes_along(later) and mode.human_yields(later) and first.needs_fallback(later, keep, LEFT)
+    assert not brakes_along(later) and mode.human_yields(later) and first.fallback_for(later, keep, LEFT) is mode
     assert mode.motion.accelerations[mode.way_out(later)] == 4.0
     far = _side_by_side(braking, braking, dx=-30.0)
-    assert brakes_along(far) and not mode.human_yields(far) and not first.needs_fallback(far, keep, LEFT)
+    assert brakes_along(far) and not mode.human_yields(far) and first.fallback_for(far, keep, LEFT) is None
     assert not brakes_along(_side_by_side([0.0] * 3 + [-4.0] * 3, [0.0] * 3 + [-4.0] * 3))  # too short a history
 
 
@@ -639,9 +639,10 @@ def test_the_standoff_exit_makes_room_beside_the_human():
 
 def test_the_set_out_rule_watches_the_gap_while_each_modes_lane_change_crosses_the_divider():
     """With half a second or more to spare either side, for the lane change from rest set out in
-    window 1 (0.3 s from now)."""
+    window 1 (0.3 s from now); the modes' fallbacks too."""
     times = np.arange(1, 61) * DT
-    for name, mode in MODES.items():
+    for name, mode in [(name, mode) for name, top in MODES.items()
+                       for mode in (top, top.fallback, top.safety_fallback) if mode is not None]:
         if mode.set_out_gap:
             y = mode.motion.steer(np.array([RIGHT, 0.0, 0.0]), np.array(LEFT), times)[:, 0]
             over = np.abs(y - LANE_DIVIDER_Y) < CAR_WIDTH / 2  # the robot's body over the divider
@@ -662,34 +663,43 @@ def test_a_mode_falls_back_when_time_runs_short_or_the_human_ahead_brakes_harder
     def car(seconds_to_cutoff, speed=30.0, y=RIGHT, yd=0.0):
         return np.array([CUTOFF_X - 30.0 * seconds_to_cutoff, y, speed, yd, 0.0, 0.0])
 
-    def falls_back(mode, robot, human, first_action, goal_y):  # from the present states alone
-        return mode.needs_fallback(np.stack([robot, human])[None], first_action, goal_y)
+    def fallback(mode, robot, human, first_action, goal_y):  # from the present states alone
+        return mode.fallback_for(np.stack([robot, human])[None], first_action, goal_y)
 
     far = car(5.0, y=LEFT)
-    assert falls_back(mode, car(1.95), far, keep, LEFT) and not falls_back(mode, car(2.05), far, keep, LEFT)
-    assert not falls_back(mode, car(1.0), far, go, LEFT)  # set out: window 0 heads for the goal lane
-    assert not falls_back(mode, car(1.0, y=RIGHT + 0.5), far, keep, LEFT)  # turning back, not yet settled
-    assert not falls_back(mode, car(1.0, yd=0.5), far, keep, LEFT)
-    assert not falls_back(mode, car(1.0), far, keep, None)  # a cost without a goal lane
-    assert not falls_back(mode, car(1.0, speed=0.0), far, keep, LEFT)  # standing still
-    assert not falls_back(comfort, car(0.5), far, keep, LEFT)  # no fallback
+    assert fallback(mode, car(1.95), far, keep, LEFT) is quick and fallback(mode, car(2.05), far, keep, LEFT) is None
+    assert fallback(mode, car(1.0), far, go, LEFT) is None  # set out: window 0 heads for the goal lane
+    assert fallback(mode, car(1.0, y=RIGHT + 0.5), far, keep, LEFT) is None  # turning back, not yet settled
+    assert fallback(mode, car(1.0, yd=0.5), far, keep, LEFT) is None
+    assert fallback(mode, car(1.0), far, keep, None) is None  # a cost without a goal lane
+    assert fallback(mode, car(1.0, speed=0.0), far, keep, LEFT) is None  # standing still
+    assert fallback(comfort, car(0.5), far, keep, LEFT) is None  # no fallback
     # a stand-off: beside the human at its speed 2.9 s before the cutoff; not when drifting apart, or earlier
     assert mode.blocks_set_out(car(2.9), car(2.9, y=LEFT)) and not mode.blocks_set_out(car(2.9), far)
     assert not mode.blocks_set_out(car(2.9), car(2.9))  # the human in the robot's lane
-    assert falls_back(mode, car(2.9), car(2.9, y=LEFT), keep, LEFT)
-    assert not falls_back(mode, car(2.9), car(2.9, speed=25.0, y=LEFT), keep, LEFT)  # clear in time
+    assert fallback(mode, car(2.9), car(2.9, y=LEFT), keep, LEFT) is quick
+    assert fallback(mode, car(2.9), car(2.9, speed=25.0, y=LEFT), keep, LEFT) is None  # clear in time
     assert mode.blocks_set_out(car(2.9), car(2.9, speed=25.0, y=LEFT))
-    assert not falls_back(mode, car(3.1), car(3.1, y=LEFT), keep, LEFT)
+    assert fallback(mode, car(3.1), car(3.1, y=LEFT), keep, LEFT) is None
     # settled in the goal lane behind a human that brakes harder than the comfort motion can: braking is not held to comfort
     ahead = car(4.0, y=LEFT) + [20.0, 0.0, 0.0, 0.0, -(comfort.motion.hardest_braking + 0.5), 0.0]
-    assert falls_back(mode, car(5.0, y=LEFT), ahead, go, LEFT)
-    assert not falls_back(mode, car(5.0, y=LEFT), ahead + [0, 0, 0, 0, 1.0, 0], go, LEFT)  # within the motion's braking
-    assert falls_back(mode, car(5.0, y=LEFT, yd=0.5), ahead, go, LEFT)  # not settled: nor put off
-    assert falls_back(mode, car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), ahead, go, LEFT)  # moving across
-    assert not falls_back(mode, car(5.0), ahead, keep, LEFT)  # in the other lane: not in the robot's way
-    assert not falls_back(mode, car(3.0, y=LEFT), ahead, go, LEFT)  # behind the robot
-    with pytest.raises(InputError):
-        Mode(fallback=mode)  # a fallback has none of its own
+    assert fallback(mode, car(5.0, y=LEFT), ahead, go, LEFT) is quick
+    assert fallback(mode, car(5.0, y=LEFT), ahead + [0, 0, 0, 0, 1.0, 0], go, LEFT) is None  # within the motion's braking
+    assert fallback(mode, car(5.0, y=LEFT, yd=0.5), ahead, go, LEFT) is quick  # not settled: nor put off
+    assert fallback(mode, car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), ahead, go, LEFT) is quick  # moving across
+    assert fallback(mode, car(5.0), ahead, keep, LEFT) is None  # in the other lane: not in the robot's way
+    assert fallback(mode, car(5.0), ahead, go, LEFT) is quick  # the robot heading into its lane
+    assert fallback(mode, car(3.0, y=LEFT), ahead, go, LEFT) is None  # behind the robot
+    # with a safety fallback, braking for safety alone falls back on it; time, or both, on the fallback
+    safe = replace(mode, safety_fallback=replace(comfort, motion=MOTIONS["safety"]))
+    assert fallback(safe, car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), ahead, go, LEFT) is safe.safety_fallback
+    assert fallback(safe, car(1.95), far, keep, LEFT) is quick
+    braking_ahead = car(1.5) + [0.0, 0.0, 0.0, 0.0, -(comfort.motion.hardest_braking + 0.5), 0.0]  # in the robot's lane
+    assert fallback(safe, car(3.0), braking_ahead, keep, LEFT) is safe.safety_fallback
+    assert fallback(safe, car(1.95), braking_ahead, keep, LEFT) is quick
+    for fallbacks in ({"fallback": mode}, {"safety_fallback": mode}, {"safety_fallback": replace(comfort, safety_fallback=quick)}):
+        with pytest.raises(InputError):
+            Mode(**fallbacks)  # a fallback has none of its own
     with pytest.raises(InputError):
         Mode(standoff_within=-1.0)
 
@@ -723,6 +733,29 @@ def test_mpc_plans_in_the_fallback_from_the_first_plan_that_needs_it_to_the_end_
         assert all(p.mode is MODES["decisive"] for p in policy.plans[fell:]) and policy.fallen_back
         assert any(Action(int(p.actions[0])).lane == "left" for p in policy.plans[fell:])  # under way, still
         assert world.history[0, 0, -1, 1] > LANE_DIVIDER_Y  # across
+
+
+def test_mpc_keeps_to_the_safety_fallback_until_time_asks_for_the_fallback():
+    """Comfort first: a human braking hard ahead while the robot moves across switches to the safety
+    fallback (the decisive braking, the comfort steering), which stays when the human stops braking;
+    time running short switches to the decisive fallback, which stays to the end of the episode."""
+    first = MODES["comfort-first"]
+    policy = MPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), mode=first))
+    keep, go = Action.of(0.0, "right").index, Action.of(0.0, "left").index
+
+    def car(seconds_to_cutoff, y=RIGHT, yd=0.0, xdd=0.0):
+        return np.array([CUTOFF_X - 30.0 * seconds_to_cutoff, y, 30.0, yd, xdd, 0.0])
+
+    policy.reset(np.random.default_rng(0), np.stack([car(8.0), car(8.0, y=LEFT)])[None], 0)
+    braking = np.stack([car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), car(4.5, y=LEFT, xdd=-5.0)])[None]
+    assert policy.plan_mode(np.stack([car(6.0), car(2.0, y=LEFT)])[None], keep) is first and policy.fallen_back is None
+    assert policy.plan_mode(braking, go) is first.safety_fallback
+    assert first.safety_fallback.motion == MOTIONS["safety"] and first.safety_fallback.follow_braking == 6.0
+    assert policy.plan_mode(np.stack([car(6.0), car(2.0, y=LEFT)])[None], keep) is first.safety_fallback
+    assert policy.plan_mode(np.stack([car(1.9), car(5.0, y=LEFT)])[None], keep) is first.fallback
+    assert policy.plan_mode(braking, go) is first.fallback
+    policy.reset(np.random.default_rng(0), np.stack([car(8.0), car(8.0, y=LEFT)])[None], 0)
+    assert policy.fallen_back is None and policy.plan_mode(braking, go) is first.safety_fallback
 
 
 def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():

@@ -11,7 +11,7 @@ integrated with Euler and ``x`` with the trapezoid rule.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -86,10 +86,12 @@ class Motion:
 
 SETTLING_TIME = 0.6
 """Shortest lateral manoeuvre (s) of the settling motions: two windows, six executed steps."""
+_COMFORT = Motion((0.0, 2.0, -2.0, -4.0), 4.0, min_steering_time=SETTLING_TIME, lateral_limits=(4.5, 7.0))
 MOTIONS = {
     "paper": Motion(ACCELERATIONS, None, JERK_WEIGHT),
     "settled": Motion(ACCELERATIONS, None, JERK_WEIGHT, SETTLING_TIME),
-    "comfort": Motion((0.0, 2.0, -2.0, -4.0), 4.0, min_steering_time=SETTLING_TIME, lateral_limits=(4.5, 7.0)),
+    "comfort": _COMFORT,
+    "safety": replace(_COMFORT, accelerations=ACCELERATIONS, jerk=None),
 }
 """The paper's motion (its lane change from rest takes 2.0 s and peaks at 6.1 m/s² and 31 m/s³
 sideways); the same with lateral manoeuvres of at least :data:`SETTLING_TIME` (``settled``: no
@@ -98,7 +100,9 @@ chatter on the lane centre, :mod:`.steering`); and one within nuPlan's comfort l
 jerk 8.37 m/s³): ramps at 4 m/s³, and time-optimal lateral manoeuvres of at least
 :data:`SETTLING_TIME` within 4.5 m/s² and 7.0 m/s³ (a lane change from rest takes 2.7 s, across
 the divider in half of it), within the total
-jerk with a longitudinal ramp at the same time, from any state, a lane change turned back included."""
+jerk with a longitudinal ramp at the same time, from any state, a lane change turned back included;
+and ``safety``: the settled motion's accelerations with the comfort motion's steering, to brake as
+hard as the settled motion can while keeping to the comfort limits sideways."""
 
 N_ACTIONS = len(ACCELERATIONS) * len(LANES)
 """Actions per window (8)."""

@@ -52,7 +52,7 @@ class MPCPolicy:
         self.plans: list[Plan] = []
         self.plan_steps: list[int] = []  # the present step t of every plan
         self.latencies: list[float] = []
-        self.fallen_back = False  # whether this episode plans in the planner's fallback mode
+        self.fallen_back: Mode | None = None  # the fallback mode this episode plans in (None: the planner's own)
 
     def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
         """Start an episode from ``start [1, 2, 6]`` (both cars' states ``[x, y, xd, yd, xdd,
@@ -72,7 +72,7 @@ class MPCPolicy:
         self.queue = list(rollout(robot, np.full((1, windows), self.hold), self.planner.motion)[0, : self.hold_steps])
         self.next_fixed = self.hold
         self.plans, self.plan_steps, self.latencies = [], [], []
-        self.fallen_back = False
+        self.fallen_back = None
         self.planner.generator.manual_seed(int(rng.integers(2**63)))
 
     def act(self, history: np.ndarray) -> np.ndarray:
@@ -102,12 +102,14 @@ class MPCPolicy:
 
     def plan_mode(self, history: np.ndarray, first_action: int) -> Mode:
         """The mode of the plan from both cars' states ``history [t+1, 2, 6]`` (robot, human) with window 0
-        fixed to ``first_action``: the planner's, or its fallback from the first plan that needs it
-        to the end of the episode (:meth:`~.planner.Mode.needs_fallback`; :attr:`fallen_back`)."""
+        fixed to ``first_action``: the planner's, or a fallback from the first plan that needs it
+        to the end of the episode (:meth:`~.planner.Mode.fallback_for`; :attr:`fallen_back`), its
+        ``safety_fallback`` until a plan needs its ``fallback``."""
         own = self.planner.mode
-        self.fallen_back = self.fallen_back or own.needs_fallback(history, first_action,
-                                                                  getattr(self.cost, "goal_y", None))
-        return own.fallback if self.fallen_back else own
+        if self.fallen_back is not own.fallback:  # once on the fallback, to the end
+            needed = own.fallback_for(history, first_action, getattr(self.cost, "goal_y", None))
+            self.fallen_back = self.fallen_back if needed is None else needed
+        return self.fallen_back or own
 
 
 class NonBlockingMPCPolicy(MPCPolicy):

@@ -85,9 +85,11 @@ class Mode:
     the robot has not set out for the goal lane and would reach the cutoff within
     ``fallback_within`` s at its present speed, or within ``standoff_within`` s in a stand-off, or
     is in a stand-off with a human that has braked along with it, or where the human ahead brakes
-    harder than the ``motion`` can, in a lane change too (:meth:`needs_fallback`), to the end of the episode
+    harder than the ``motion`` can, in a lane change too (:meth:`fallback_for`), to the end of the episode
     (:class:`~.mpc.MPCPolicy`): a comfortable mode that falls back on a quicker one when time runs
-    short or safety needs harder braking."""
+    short or safety needs harder braking. ``safety_fallback``: where braking for safety is the only
+    reason, the mode planned in instead (None: ``fallback``) until another reason asks for
+    ``fallback``: one that brakes as hard as ``fallback`` and steers as comfortably as this mode."""
 
     motion: Motion = MOTIONS["paper"]
     turn_back_cost: float = 0.0
@@ -96,6 +98,7 @@ class Mode:
     set_out_gap: float = 0.0
     set_out_until: float = 2.0
     fallback: Mode | None = None
+    safety_fallback: Mode | None = None
     fallback_within: float = 0.0
     standoff_within: float = 0.0
     follow_braking: float = 0.0
@@ -106,13 +109,15 @@ class Mode:
                         self.standoff_within, self.follow_braking, self.standoff_exit_cost)
         if (not all(v >= 0 and np.isfinite(v) for v in non_negative) or not 0 < self.risk <= 1
                 or not SET_OUT_FROM < self.set_out_until < np.inf
-                or not (self.fallback is None or isinstance(self.fallback, Mode) and self.fallback.fallback is None)):
+                or not all(m is None or isinstance(m, Mode) and m.fallback is None and m.safety_fallback is None
+                           for m in (self.fallback, self.safety_fallback))):
             raise InputError(f"a planner mode needs turn_back_cost, commit_offset, set_out_gap, fallback_within, "
                              f"standoff_within, follow_braking and standoff_exit_cost finite and >= 0, 0 < risk <= 1, "
-                             f"set_out_until finite and > {SET_OUT_FROM} and a fallback that is None or a Mode without a "
-                             f"fallback of its own, got {self.turn_back_cost}, {self.commit_offset}, {self.set_out_gap}, "
+                             f"set_out_until finite and > {SET_OUT_FROM} and fallbacks that are None or Modes without "
+                             f"fallbacks of their own, got {self.turn_back_cost}, {self.commit_offset}, {self.set_out_gap}, "
                              f"{self.fallback_within}, {self.standoff_within}, {self.follow_braking}, "
-                             f"{self.standoff_exit_cost}, {self.risk}, {self.set_out_until}, {self.fallback!r}")
+                             f"{self.standoff_exit_cost}, {self.risk}, {self.set_out_until}, {self.fallback!r}, "
+                             f"{self.safety_fallback!r}")
 
     def blocks_set_out(self, robot: np.ndarray, human: np.ndarray, after: float = 0.0) -> bool:
         """Whether the set-out rule holds the robot in its lane, from both cars' present states
@@ -122,11 +127,11 @@ class Mode:
         crossing_gaps = robot[0] - human[0] + (robot[2] - human[2]) * (after + self.set_out_times)
         return bool(np.abs(crossing_gaps).min() < self.set_out_gap and abs(robot[1] - human[1]) >= CAR_WIDTH)
 
-    def needs_fallback(self, history: np.ndarray, first_action: int, goal_y: float | None) -> bool:
-        """Whether a plan from both cars' states ``history [t+1, 2, 6]`` (robot, human; the present
+    def fallback_for(self, history: np.ndarray, first_action: int, goal_y: float | None) -> Mode | None:
+        """The mode a plan from both cars' states ``history [t+1, 2, 6]`` (robot, human; the present
         last), the robot executing the action ``first_action`` (window 0), towards the lane centre
-        ``goal_y`` (m; None: no goal lane) falls back on the ``fallback`` mode: the robot has not
-        set out (window 0 keeps to its lane, and it is within :data:`SETTLED_OFFSET` m of its
+        ``goal_y`` (m; None: no goal lane) falls back on, if any. The ``fallback`` where the robot
+        has not set out (window 0 keeps to its lane, and it is within :data:`SETTLED_OFFSET` m of its
         centre and moving sideways slower than :data:`SETTLED_SPEED` m/s) and would reach
         :data:`~trafficweaving.scenario.CUTOFF_X` at its present speed (standing still: never)
         within ``fallback_within`` s; or within ``standoff_within`` s while the set-out rule holds
@@ -134,22 +139,31 @@ class Mode:
         ``fallback_within`` s are left: a stand-off the comfortable mode does not get out of in
         time; or while the set-out rule holds it and the human has braked along with it
         (:meth:`human_yields`): the comfortable motion's acceleration is too gentle to get ahead
-        of a human that answers it (these three need a goal lane). Or, in either lane or moving
-        between them, the human is ahead in its way (within :data:`FOLLOW_LATERAL` m sideways)
-        braking harder than this mode's ``motion`` can: braking for safety is not held to comfort,
-        nor put off until a lane change is done. A lane change under way is not switched over
-        otherwise: the two motions' rollouts of it differ."""
+        of a human that answers it (these three need a goal lane). The ``safety_fallback`` (or,
+        without one, the ``fallback``) where none of these holds and, in either lane or moving
+        between them, the human is ahead in its way (within :data:`FOLLOW_LATERAL` m sideways of
+        the robot or of the lane centre window 0 steers it to) braking harder than this mode's
+        ``motion`` can: braking for safety is not held to comfort, nor put off until a lane change
+        is done. None otherwise: a lane change under way is not switched over for time, the two
+        motions' rollouts of it differ."""
         if self.fallback is None:
-            return False
+            return None
         robot, human = history[-1]
-        in_way_ahead = human[0] > robot[0] and abs(human[1] - robot[1]) < FOLLOW_LATERAL
+        if self._short_of_time(history, first_action, goal_y):
+            return self.fallback
+        lateral_gap = min(abs(human[1] - robot[1]), abs(human[1] - LANE_CENTRE_Y[Action(first_action).lane]))
+        in_way_ahead = human[0] > robot[0] and lateral_gap < FOLLOW_LATERAL
         if in_way_ahead and -human[4] > self.motion.hardest_braking:
-            return True
+            return self.safety_fallback or self.fallback
+        return None
+
+    def _short_of_time(self, history: np.ndarray, first_action: int, goal_y: float | None) -> bool:
+        """Whether the robot, settled in the lane it has not left, falls back for time or a
+        stand-off (:meth:`fallback_for`, with its arguments)."""
+        robot, human = history[-1]
         lane = Action(first_action).lane
         settled = abs(robot[1] - LANE_CENTRE_Y[lane]) < SETTLED_OFFSET and abs(robot[3]) < SETTLED_SPEED
-        if not settled:
-            return False
-        if goal_y is None or lane == lane_of(np.array([goal_y]))[0]:
+        if not settled or goal_y is None or lane == lane_of(np.array([goal_y]))[0]:
             return False
         seconds_to_cutoff = (CUTOFF_X - robot[0]) / robot[2] if robot[2] > 0 else np.inf
         if seconds_to_cutoff < self.fallback_within:
@@ -201,9 +215,9 @@ SET_OUT_FROM = 0.6
 with the settled motion (1.55 s with the comfort motion), so this leaves half a second or more to
 spare."""
 SETTLED_OFFSET = 0.3
-"""How close (m) to its lane's centre the robot is settled in it (:meth:`Mode.needs_fallback`)."""
+"""How close (m) to its lane's centre the robot is settled in it (:meth:`Mode.fallback_for`)."""
 SETTLED_SPEED = 0.3
-"""How slowly (m/s) the robot moves sideways when settled in its lane (:meth:`Mode.needs_fallback`)."""
+"""How slowly (m/s) the robot moves sideways when settled in its lane (:meth:`Mode.fallback_for`)."""
 SET_OUT_COST = 100_000.0
 """Cost of setting out with the human closer than a mode's ``set_out_gap``: more than a sampled
 future's collision costs can add up to (1000 · 9.25 at each of 15 steps discounted by 0.9: about
@@ -248,10 +262,10 @@ STANDOFF_WITHIN = 3.0
 """How long (s) before the cutoff a ``comfort-first`` robot that has not set out falls back on the
 decisive mode in a stand-off: while the set-out rule holds it in its lane and, both cars keeping
 their speeds, would still hold it :data:`FALLBACK_WITHIN` s before the cutoff
-(:meth:`Mode.needs_fallback`; docs/closed_loop.md)."""
+(:meth:`Mode.fallback_for`; docs/closed_loop.md)."""
 FALLBACK_WITHIN = 2.0
 """How long (s) before the cutoff a ``comfort-first`` robot that has not set out falls back on the
-decisive mode (:meth:`Mode.needs_fallback`). Set out a window later, the comfort motion's lane
+decisive mode (:meth:`Mode.fallback_for`). Set out a window later, the comfort motion's lane
 change would take the robot across the swap line (1.4 s from rest) 0.3 s before the cutoff, the
 decisive one's (1.0 s) 0.7 s before it: a little time for the decisive robot to get clear of the
 human first (docs/closed_loop.md)."""
@@ -266,6 +280,9 @@ MODES = {
     "cautious": replace(_DECISIVE, risk=0.2),
     "comfort-first": replace(_COMFORT, standoff_exit_cost=STANDOFF_EXIT_COST,
                              fallback=replace(_DECISIVE, standoff_exit_cost=STANDOFF_EXIT_COST),
+                             safety_fallback=replace(_COMFORT, motion=MOTIONS["safety"],
+                                                     follow_braking=MOTIONS["safety"].hardest_braking,
+                                                     standoff_exit_cost=STANDOFF_EXIT_COST),
                              fallback_within=FALLBACK_WITHIN, standoff_within=STANDOFF_WITHIN),
 }
 """The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once under way,
@@ -275,8 +292,9 @@ nuPlan's comfort limits, with longer lane changes and so a longer look at the ga
 out); ``cautious`` (decisive, judged by the worst 20 % of its sampled futures: CVaR_0.2);
 ``comfort-first`` (comfort, falling back on decisive when the robot has not set out
 :data:`FALLBACK_WITHIN` s before the cutoff, or :data:`STANDOFF_WITHIN` s before it in a
-stand-off, or in a stand-off once the human has braked along with it, or when the human ahead brakes
-harder than comfort allows; in both, beside the human it makes room: the stand-off exit,
+stand-off, or in a stand-off once the human has braked along with it; and on comfort braking as
+hard as decisive, steering as comfortably as before (``safety_fallback``), when the human ahead
+brakes harder than comfort allows; in each, beside the human it makes room: the stand-off exit,
 :data:`STANDOFF_EXIT_COST`; docs/closed_loop.md)."""
 
 
