@@ -86,12 +86,12 @@ class Motion:
 
 SETTLING_TIME = 0.6
 """Shortest lateral manoeuvre (s) of the settling motions: two windows, six executed steps."""
-_COMFORT = Motion((0.0, 2.0, -2.0, -4.0), 4.0, min_steering_time=SETTLING_TIME, lateral_limits=(4.5, 7.0))
+_COMFORT_MOTION = Motion((0.0, 2.0, -2.0, -4.0), 4.0, min_steering_time=SETTLING_TIME, lateral_limits=(4.5, 7.0))
 MOTIONS = {
     "paper": Motion(ACCELERATIONS, None, JERK_WEIGHT),
     "settled": Motion(ACCELERATIONS, None, JERK_WEIGHT, SETTLING_TIME),
-    "comfort": _COMFORT,
-    "safety": replace(_COMFORT, accelerations=ACCELERATIONS, jerk=None),
+    "comfort": _COMFORT_MOTION,
+    "safety": replace(_COMFORT_MOTION, accelerations=ACCELERATIONS, jerk=None),
 }
 """The paper's motion (its lane change from rest takes 2.0 s and peaks at 6.1 m/s² and 31 m/s³
 sideways); the same with lateral manoeuvres of at least :data:`SETTLING_TIME` (``settled``: no

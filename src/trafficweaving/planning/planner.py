@@ -85,10 +85,10 @@ class Mode:
     the robot has not set out for the goal lane and would reach the cutoff within
     ``fallback_within`` s at its present speed, or within ``standoff_within`` s in a stand-off, or
     is in a stand-off with a human that has braked along with it, or where the human ahead brakes
-    harder than the ``motion`` can, in a lane change too (:meth:`fallback_for`), to the end of the episode
-    (:class:`~.mpc.MPCPolicy`): a comfortable mode that falls back on a quicker one when time runs
-    short or safety needs harder braking. ``safety_fallback``: where braking for safety is the only
-    reason, the mode planned in instead (None: ``fallback``) until another reason asks for
+    harder than the ``motion`` can, in a lane change too (:meth:`fallback_for`), to the end of the
+    episode (:class:`~.mpc.MPCPolicy`): a comfortable mode that falls back on a quicker one when
+    time runs short or safety needs harder braking. ``safety_fallback``: where braking for safety is
+    the only reason, the mode planned in instead (None: ``fallback``) until another reason asks for
     ``fallback``: one that brakes as hard as ``fallback`` and steers as comfortably as this mode."""
 
     motion: Motion = MOTIONS["paper"]
