@@ -199,10 +199,11 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
     * ``planner-comfort``: decisive, with candidates that keep to nuPlan's comfort limits;
     * ``planner`` (the default): comfort first, ``planner-comfort`` until the robot has not set out
       2.0 s before the cutoff, or 3.0 s before it in a stand-off, or in a stand-off once the human
-      has braked along with it, or the human ahead in its way brakes harder than 4 m/s² (in a lane
-      change too), then ``planner-decisive`` to the end of the episode, in both making room beside
-      the human (the stand-off exit: yielding down to 20 m/s, keeping to the way it has taken,
-      going ahead of a human that brakes along);
+      has braked along with it, then ``planner-decisive`` to the end of the episode; where only the
+      human ahead in its way (or in the lane it steers into) braking harder than 4 m/s² calls for
+      it, braking as hard as ``planner-decisive`` with the comfort steering until time does; in
+      each making room beside the human (the stand-off exit: yielding down to 20 m/s, keeping to
+      the way it has taken, going ahead of a human that brakes along);
     * ``planner-cautious``: decisive, judging its candidates by CVaR (the worst 20 % of the futures);
     * ``planner-cv``: the decisive planner against :class:`ConstantVelocityHuman` (``model`` unused);
     * ``rules``: :class:`RuleBasedRobot` (``model``, ``deadline``, ``budget`` unused).
