@@ -22,8 +22,8 @@ from trafficweaving.planning.candidates import (ACCELERATIONS, MOTIONS, N_ACTION
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import (FOLLOW_COST, FOLLOW_LATERAL, HUMAN_ACCELERATION_HELD, MODES,
-                                             OWN_FUTURES_SHARE, SCREENING_SAMPLES, SET_OUT_COST, SET_OUT_GAP, SHORTLIST,
-                                             STANDOFF_EXIT_COST, YIELD_MARGIN, YIELD_SPEED_FLOOR, Budget, Mode, Planner,
+                                             OWN_FUTURES_SHARE, PROGRESS_COST, SCREENING_SAMPLES, SET_OUT_COST,
+                                             SET_OUT_GAP, SHORTLIST, STANDOFF_EXIT_COST, YIELD_MARGIN, YIELD_SPEED_FLOOR, Budget, Mode, Planner,
                                              brakes_along, example_history, risk_cost, set_outs, standoff_exit,
                                              stopping_shortfall, turn_backs)
 from trafficweaving.planning.steering import jerk_limited_steer, optimal_time, steer, steering_cost
@@ -519,6 +519,38 @@ def test_the_following_rule_keeps_a_gap_the_robot_can_stop_in():
     assert Action(int(ruled.actions[1])).acceleration == -6.0  # toy_cost alone prefers 4 m/s² in every window
     with pytest.raises(InputError):
         Mode(follow_braking=-1.0)
+
+
+def test_in_its_goal_lane_the_robot_gets_going_again_where_nothing_holds_it():
+    """Stopped in its goal lane 8 m short of the cutoff, a slow human 7 m ahead beside it: the paper's
+    cost pays the robot for staying behind (separation reward) and ``comfort-first``'s modes still
+    accelerate (PROGRESS_COST per m/s of the horizon's end speed short of the floor: the rule costs
+    exactly that), without the progress cost they stay; in the start lane, or faster than the
+    floor, the cost is silent."""
+    robot = np.array([CUTOFF_X - 8.0, RIGHT, 0.0, 0.0, 0.0, 0.0])
+    human = np.array([CUTOFF_X - 1.0, LEFT + 0.5, 1.5, 0.0, 0.0, 0.0])
+    history = np.repeat(np.stack([robot, human])[None], 6, axis=0)
+    history[:, 1, 0] += 1.5 * DT * np.arange(-5, 1)
+    keep, cost = Action.of(0.0, "right").index, PaperCost(goal_y=RIGHT)
+    first = MODES["comfort-first"]
+    for mode in (first, first.fallback, first.safety_fallback):
+        assert mode.progress_cost == PROGRESS_COST
+        ruled = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), mode=mode).plan(history, keep, cost)
+        plain = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), mode=replace(mode, progress_cost=0.0)).plan(
+            history, keep, cost)
+        short = np.maximum(YIELD_SPEED_FLOOR - ruled.candidates.states[:, -1, 2], 0.0)
+        np.testing.assert_allclose(ruled.first_stage_cost - plain.first_stage_cost, PROGRESS_COST * short, rtol=1e-5)
+        assert Action(int(ruled.actions[1])).acceleration > 0 and ruled.robot[-1, 2] > 1.5
+        assert plain.robot[-1, 2] < 0.5  # the paper's cost alone keeps it behind the human
+    fast = history.copy()
+    fast[:, 0, 2] = YIELD_SPEED_FLOOR + 0.5  # its braking candidates end the horizon below the floor
+    for situation, goal_y in ((history, LEFT), (fast, RIGHT)):  # in the start lane; not slower than the floor
+        ruled = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), mode=first).plan(situation, keep, PaperCost(goal_y))
+        plain = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), mode=replace(first, progress_cost=0.0)).plan(
+            situation, keep, PaperCost(goal_y))
+        np.testing.assert_allclose(ruled.first_stage_cost, plain.first_stage_cost)
+    with pytest.raises(InputError, match="progress_cost"):
+        Mode(progress_cost=-1.0)
 
 
 def _seconds_to_clear(robot, human, acceleration, gap, ahead, floor=-np.inf):

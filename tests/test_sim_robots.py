@@ -150,7 +150,8 @@ def test_the_planning_robots_drive_in_their_modes():
     assert robot_planner("planner-decisive").mode == robot_planner("planner-cv").mode == MODES["decisive"]
     first = robot_planner("planner").mode
     assert first == MODES["comfort-first"] and first.motion == MOTIONS["comfort"]
-    assert first.fallback == replace(MODES["decisive"], standoff_exit_cost=first.standoff_exit_cost)
+    assert first.fallback == replace(MODES["decisive"], standoff_exit_cost=first.standoff_exit_cost,
+                                     progress_cost=first.progress_cost)
     assert robot_planner("planner-paper").mode == MODES["paper"] and MODES["paper"].motion == MOTIONS["paper"]
     assert MODES["paper"].turn_back_cost == 0 and MODES["paper"].risk == 1  # the paper's objective, unchanged
     assert robot_planner("planner-comfort").motion == MOTIONS["comfort"]

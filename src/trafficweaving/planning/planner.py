@@ -81,6 +81,12 @@ class Mode:
     it cannot drop behind without slowing below :data:`YIELD_SPEED_FLOOR`, or once the human has
     braked along with it) costs this much: the robot makes room instead of waiting beside the human
     for room (0: it may wait, the paper's).
+    ``progress_cost``: while the robot is in its goal lane (across the divider) and slower than
+    :data:`YIELD_SPEED_FLOOR`, a candidate costs this much per m/s by which its speed at the
+    horizon's end falls short of that: a robot that has slowed or stopped for the human gets
+    going again as soon as the following rule and the sampled futures let it (0: no such cost,
+    the paper's, whose separation reward pays a robot for staying behind a slower human, however
+    slow).
     ``fallback``: the mode a receding-horizon policy plans in (None: none) from the first plan where
     the robot has not set out for the goal lane and would reach the cutoff within
     ``fallback_within`` s at its present speed, or within ``standoff_within`` s in a stand-off, or
@@ -103,21 +109,22 @@ class Mode:
     standoff_within: float = 0.0
     follow_braking: float = 0.0
     standoff_exit_cost: float = 0.0
+    progress_cost: float = 0.0
 
     def __post_init__(self):
         non_negative = (self.turn_back_cost, self.commit_offset, self.set_out_gap, self.fallback_within,
-                        self.standoff_within, self.follow_braking, self.standoff_exit_cost)
+                        self.standoff_within, self.follow_braking, self.standoff_exit_cost, self.progress_cost)
         if (not all(v >= 0 and np.isfinite(v) for v in non_negative) or not 0 < self.risk <= 1
                 or not SET_OUT_FROM < self.set_out_until < np.inf
                 or not all(m is None or isinstance(m, Mode) and m.fallback is None and m.safety_fallback is None
                            for m in (self.fallback, self.safety_fallback))):
             raise InputError(f"a planner mode needs turn_back_cost, commit_offset, set_out_gap, fallback_within, "
-                             f"standoff_within, follow_braking and standoff_exit_cost finite and >= 0, 0 < risk <= 1, "
-                             f"set_out_until finite and > {SET_OUT_FROM} and fallbacks that are None or Modes without "
+                             f"standoff_within, follow_braking, standoff_exit_cost and progress_cost finite and >= 0, "
+                             f"0 < risk <= 1, set_out_until finite and > {SET_OUT_FROM} and fallbacks that are None or Modes without "
                              f"fallbacks of their own, got {self.turn_back_cost}, {self.commit_offset}, {self.set_out_gap}, "
                              f"{self.fallback_within}, {self.standoff_within}, {self.follow_braking}, "
-                             f"{self.standoff_exit_cost}, {self.risk}, {self.set_out_until}, {self.fallback!r}, "
-                             f"{self.safety_fallback!r}")
+                             f"{self.standoff_exit_cost}, {self.progress_cost}, {self.risk}, {self.set_out_until}, "
+                             f"{self.fallback!r}, {self.safety_fallback!r}")
 
     def blocks_set_out(self, robot: np.ndarray, human: np.ndarray, after: float = 0.0) -> bool:
         """Whether the set-out rule holds the robot in its lane, from both cars' present states
@@ -254,6 +261,14 @@ would open against a human keeping its speed."""
 HUMAN_ACCELERATION_HELD = 0.6
 """How long (s) :func:`standoff_exit` expects the human to hold its present acceleration (then its
 speed): to the end of window 1, by when the next plans have seen what it did instead."""
+PROGRESS_COST = 500.0
+"""The ``comfort-first`` mode's cost per m/s by which a candidate ends its horizon slower than
+:data:`YIELD_SPEED_FLOOR` while the robot is in its goal lane and slower than that
+(``Mode.progress_cost``): the comfort motion's 2 m/s² from window 1 on (ramped up at 4 m/s³) ends
+the horizon 1.9 m/s faster than holding a standstill (950 less), more than staying behind a slower
+human saves: the paper's separation reward (at most 100 a step, 715 over the horizon) and the
+effort of accelerating (about 20); a colliding sampled future (up to 66,000) and the following
+rule still outweigh it (docs/closed_loop.md)."""
 FOLLOW_LATERAL = COLLISION_DY + 0.5
 """How close sideways (m, centre to centre) the human, held where it is, is in the robot's way
 (:func:`stopping_shortfall`): the collision rule's 1.8 m and half a metre for the human's sideways
@@ -273,16 +288,17 @@ _DECISIVE = Mode(MOTIONS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET
                  follow_braking=MOTIONS["settled"].hardest_braking)
 _COMFORT = Mode(MOTIONS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP, set_out_until=2.5,
                 follow_braking=MOTIONS["comfort"].hardest_braking)
+_COMFORT_FIRST_RULES = {"standoff_exit_cost": STANDOFF_EXIT_COST, "progress_cost": PROGRESS_COST}
+"""What ``comfort-first`` and both its fallbacks add to their motions' modes: the stand-off exit,
+and getting going again in the goal lane."""
 MODES = {
     "paper": Mode(),
     "decisive": _DECISIVE,
     "comfort": _COMFORT,
     "cautious": replace(_DECISIVE, risk=0.2),
-    "comfort-first": replace(_COMFORT, standoff_exit_cost=STANDOFF_EXIT_COST,
-                             fallback=replace(_DECISIVE, standoff_exit_cost=STANDOFF_EXIT_COST),
-                             safety_fallback=replace(_COMFORT, motion=MOTIONS["safety"],
-                                                     follow_braking=MOTIONS["safety"].hardest_braking,
-                                                     standoff_exit_cost=STANDOFF_EXIT_COST),
+    "comfort-first": replace(_COMFORT, **_COMFORT_FIRST_RULES, fallback=replace(_DECISIVE, **_COMFORT_FIRST_RULES),
+                             safety_fallback=replace(_COMFORT, motion=MOTIONS["safety"], **_COMFORT_FIRST_RULES,
+                                                     follow_braking=MOTIONS["safety"].hardest_braking),
                              fallback_within=FALLBACK_WITHIN, standoff_within=STANDOFF_WITHIN),
 }
 """The planner's modes: the paper's exactly; ``decisive`` (it keeps to a lane change once under way,
@@ -295,7 +311,8 @@ out); ``cautious`` (decisive, judged by the worst 20 % of its sampled futures: C
 stand-off, or in a stand-off once the human has braked along with it; and on comfort braking as
 hard as decisive, steering as comfortably as before (``safety_fallback``), when the human ahead
 brakes harder than comfort allows; in each, beside the human it makes room: the stand-off exit,
-:data:`STANDOFF_EXIT_COST`; docs/closed_loop.md)."""
+:data:`STANDOFF_EXIT_COST`, and once in its goal lane it does not stay slower than
+:data:`YIELD_SPEED_FLOOR` where it need not, :data:`PROGRESS_COST`; docs/closed_loop.md)."""
 
 
 def risk_cost(scores: torch.Tensor, risk: float) -> torch.Tensor:
@@ -584,8 +601,9 @@ class Planner:
         setting out beside the human (:func:`set_outs`, while the human would be less than
         ``set_out_gap`` ahead or behind as the robot moves across, and is not in the robot's lane),
         and then, before it has set out, not taking the way out of the stand-off
-        (:meth:`Mode.way_out`, with ``standoff_exit_cost``); and coming short of stopping behind it
-        (:func:`stopping_shortfall`, with ``follow_braking``)."""
+        (:meth:`Mode.way_out`, with ``standoff_exit_cost``); in the goal lane below
+        :data:`YIELD_SPEED_FLOOR`, ending the horizon short of it (``progress_cost`` per m/s); and
+        coming short of stopping behind it (:func:`stopping_shortfall`, with ``follow_braking``)."""
         goal_y = getattr(cost, "goal_y", None)
         rules = np.zeros(len(candidates))
         if goal_y is not None:
@@ -599,6 +617,8 @@ class Planner:
                 if mode.standoff_exit_cost and Action(int(candidates.actions[0, 0])).lane != goal:  # not set out
                     way = mode.way_out(history)
                     rules += mode.standoff_exit_cost * (acceleration_indices(candidates.actions[:, 1]) != way)
+            if mode.progress_cost and lane_of(robot[1:2])[0] == goal and robot[2] < YIELD_SPEED_FLOOR:
+                rules += mode.progress_cost * np.maximum(YIELD_SPEED_FLOOR - candidates.states[:, -1, 2], 0.0)
         if mode.follow_braking:
             rules += FOLLOW_COST * stopping_shortfall(history[-1, 0], candidates.states, history[-1, 1],
                                                       mode.follow_braking, mode.motion)

@@ -203,7 +203,8 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
       human ahead in its way (or in the lane it steers into) braking harder than 4 m/s² calls for
       it, braking as hard as ``planner-decisive`` with the comfort steering until time does; in
       each making room beside the human (the stand-off exit: yielding down to 20 m/s, keeping to
-      the way it has taken, going ahead of a human that brakes along);
+      the way it has taken, going ahead of a human that brakes along), and once in its goal lane
+      not staying slower than 20 m/s where nothing holds it;
     * ``planner-cautious``: decisive, judging its candidates by CVaR (the worst 20 % of the futures);
     * ``planner-cv``: the decisive planner against :class:`ConstantVelocityHuman` (``model`` unused);
     * ``rules``: :class:`RuleBasedRobot` (``model``, ``deadline``, ``budget`` unused).
