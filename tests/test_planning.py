@@ -23,9 +23,9 @@ from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import (FOLLOW_COST, FOLLOW_LATERAL, HUMAN_ACCELERATION_HELD, MODES,
                                              OWN_FUTURES_SHARE, PROGRESS_COST, SCREENING_SAMPLES, SET_OUT_COST,
-                                             SET_OUT_GAP, SHORTLIST, STANDOFF_EXIT_COST, YIELD_MARGIN, YIELD_SPEED_FLOOR, Budget, Mode, Planner,
-                                             brakes_along, example_history, risk_cost, set_outs, standoff_exit,
-                                             stopping_shortfall, turn_backs)
+                                             SET_OUT_GAP, SHORTLIST, STANDOFF_EXIT_COST, YIELD_MARGIN,
+                                             YIELD_SPEED_FLOOR, Budget, Mode, Planner, brakes_along, example_history,
+                                             risk_cost, set_outs, standoff_exit, stopping_shortfall, turn_backs)
 from trafficweaving.planning.steering import jerk_limited_steer, optimal_time, steer, steering_cost
 from trafficweaving.scenario import COLLISION_DX, CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.sim.world import World

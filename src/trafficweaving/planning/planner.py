@@ -120,9 +120,9 @@ class Mode:
                            for m in (self.fallback, self.safety_fallback))):
             raise InputError(f"a planner mode needs turn_back_cost, commit_offset, set_out_gap, fallback_within, "
                              f"standoff_within, follow_braking, standoff_exit_cost and progress_cost finite and >= 0, "
-                             f"0 < risk <= 1, set_out_until finite and > {SET_OUT_FROM} and fallbacks that are None or Modes without "
-                             f"fallbacks of their own, got {self.turn_back_cost}, {self.commit_offset}, {self.set_out_gap}, "
-                             f"{self.fallback_within}, {self.standoff_within}, {self.follow_braking}, "
+                             f"0 < risk <= 1, set_out_until finite and > {SET_OUT_FROM} and fallbacks that are None or "
+                             f"Modes without fallbacks of their own, got {self.turn_back_cost}, {self.commit_offset}, "
+                             f"{self.set_out_gap}, {self.fallback_within}, {self.standoff_within}, {self.follow_braking}, "
                              f"{self.standoff_exit_cost}, {self.progress_cost}, {self.risk}, {self.set_out_until}, "
                              f"{self.fallback!r}, {self.safety_fallback!r}")
 
