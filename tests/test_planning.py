@@ -18,7 +18,7 @@ from trafficweaving.model.fused_decoder import INT8_RANGE, FusedDecoder, decode_
 from trafficweaving.model.predictor import HumanPredictor, resolve_precision
 from trafficweaving.model.sampler import BatchedRollout
 from trafficweaving.planning.candidates import (ACCELERATIONS, MOTIONS, N_ACTIONS, N_CANDIDATES, SETTLING_TIME, WINDOWS, Action,
-                                                action_sequences, robot_candidates, rollout)
+                                                acceleration_indices, action_sequences, robot_candidates, rollout)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
 from trafficweaving.planning.planner import (FOLLOW_COST, FOLLOW_LATERAL, HUMAN_ACCELERATION_HELD, MODES,
@@ -424,8 +424,12 @@ def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_w
                 - Planner(ToyHuman(), seed=0).plan(history, keep, cost).first_stage_cost)
 
     apart = HISTORY_TOY.copy()
-    apart[:, 1, 0] -= 5.0  # the human 5 m behind at the same speed: room to set out
-    np.testing.assert_array_equal(costs_of_the_rule(apart), 0.0)
+    apart[:, 1, 0] -= 5.5  # the human 5.5 m behind at the same speed: room to set out, unless braking in front of it
+    accelerations = np.array([[Action(int(a)).acceleration for a in row] for row in plain.candidates.actions])
+    never_braking, braking_hard = (accelerations[:, 1:] >= 0).all(1), (accelerations[:, 1:3] == -6.0).all(1)
+    apart_costs = costs_of_the_rule(apart)
+    np.testing.assert_array_equal(apart_costs[never_braking], 0.0)
+    np.testing.assert_allclose(apart_costs[braking_hard], SET_OUT_COST * starts[braking_hard], atol=0.1)
     pulling_away = HISTORY_TOY.copy()
     pulling_away[:, 1, 0] -= 2.0  # 2 m behind but 6 m/s slower: 5.6 m apart by the time the robot is across
     pulling_away[:, 1, 2] -= 6.0
@@ -443,6 +447,32 @@ def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_w
     sequences = np.array([lanes("right", "left", "left", "left", "left"), lanes("left", "left", "left", "left", "left"),
                           lanes("right", "right", "left", "left", "left"), lanes("left", "right", "left", "right", "left")])
     assert set_outs(sequences, "left").tolist() == [True, False, False, False]
+
+
+def test_the_set_out_rule_moves_the_robot_as_each_candidate_does():
+    """The human 1 m behind the robot and 6 m/s slower is 4.6 m behind 0.6 s from now if the robot
+    keeps its speed: too close to set out; 5.3 m behind if the robot accelerates at 4 m/s² from now
+    (the paper's motion reaches it at once): room; 3.5 m if it brakes at 6 m/s². A candidate that
+    holds its speed is judged as the robot keeping it (:meth:`Mode.blocks_set_out`)."""
+    mode = MODES["decisive"]
+    robot = np.array([-120.0, RIGHT, 30.0, 0.0, 0.0, 0.0])
+    human = robot + [-1.0, LEFT - RIGHT, -6.0, 0.0, 0.0, 0.0]
+    assert mode.blocks_set_out(robot, human)
+    for acceleration, blocked in ((0.0, True), (4.0, False), (-6.0, True)):
+        first, across = Action.of(acceleration, "right").index, Action.of(acceleration, "left").index
+        states = robot_candidates(robot, first, mode.motion).states
+        sequence = (action_sequences(first)[:, 1:] == across).all(1)
+        assert mode.blocks_set_out_along(states[sequence], robot, human).tolist() == [blocked], acceleration
+    holding = robot_candidates(robot, Action.of(0.0, "right").index, mode.motion)
+    held = (acceleration_indices(holding.actions) == 0).all(1)
+    for gap in (-6.0, -4.0, 0.0, 4.9, 5.1, 8.0):
+        for speed in (24.0, 30.0, 33.0):
+            other = robot + [gap, LEFT - RIGHT, speed - 30.0, 0.0, 0.0, 0.0]
+            along = mode.blocks_set_out_along(holding.states[held], robot, other)
+            assert (along == mode.blocks_set_out(robot, other)).all()
+    in_lane = robot + [-1.0, 0.0, -6.0, 0.0, 0.0, 0.0]  # the human in the robot's lane: nothing to wait for
+    assert not mode.blocks_set_out_along(holding.states, robot, in_lane).any()
+    assert not MODES["paper"].blocks_set_out_along(holding.states, robot, human).any()
 
 
 def _shortfall_by_simulation(robot, states, human, human_braking, motion, dt=1e-3):

@@ -62,11 +62,14 @@ class Mode:
     ones (CVaR_α, :func:`risk_cost`; 1: the expected cost, the paper's).
     ``set_out_gap``: while the human would be beside the robot as it moves across (less than this
     many m ahead or behind at any of 15 times from :data:`SET_OUT_FROM` to ``set_out_until`` s from
-    now, both keeping their speeds; and not in the robot's lane: their centres a car's width or
-    more apart sideways), a candidate that sets out for the goal lane in window 1
-    (:func:`set_outs`) costs :data:`SET_OUT_COST`: the robot does not start a lane change beside
-    the human (0: it may, the paper's). ``set_out_until``: about half a second after the
-    ``motion``'s lane change, set out in window 1, takes the robot's body clear of the divider.
+    now, the robot moving as the candidate moves it, the human keeping its speed; and not in the
+    robot's lane: their centres a car's width or more apart sideways; :meth:`blocks_set_out_along`),
+    a candidate that sets out for the goal lane in window 1 (:func:`set_outs`) costs
+    :data:`SET_OUT_COST`: the robot does not start a lane change beside the human (0: it may, the
+    paper's). The robot "held in its lane" by the set-out rule, in what follows, is one that would
+    be held keeping its speed (:meth:`blocks_set_out`): the stand-off. ``set_out_until``: about
+    half a second after the ``motion``'s lane change, set out in window 1, takes the robot's body
+    clear of the divider.
     ``follow_braking``: the following rule (:func:`stopping_shortfall`): while the human is ahead
     and in the robot's way (within :data:`FOLLOW_LATERAL` m sideways of where the candidate takes
     the robot), a candidate costs :data:`FOLLOW_COST` per metre by which the robot, braking as hard
@@ -127,12 +130,29 @@ class Mode:
                              f"{self.fallback!r}, {self.safety_fallback!r}")
 
     def blocks_set_out(self, robot: np.ndarray, human: np.ndarray, after: float = 0.0) -> bool:
-        """Whether the set-out rule holds the robot in its lane, from both cars' present states
-        ``robot [6]``, ``human [6]``: the human would be less than ``set_out_gap`` ahead or behind at
-        any of :attr:`set_out_times`, both keeping their speeds, and is not in the robot's lane;
-        with ``after`` (s), whether it would still hold the robot that much later."""
+        """Whether the set-out rule holds a robot that keeps its speed in its lane (a stand-off),
+        from both cars' present states ``robot [6]``, ``human [6]``: the human would be less than
+        ``set_out_gap`` ahead or behind at any of :attr:`set_out_times`, both keeping their speeds,
+        and is not in the robot's lane; with ``after`` (s), whether it would still hold the robot
+        that much later."""
         crossing_gaps = robot[0] - human[0] + (robot[2] - human[2]) * (after + self.set_out_times)
         return bool(np.abs(crossing_gaps).min() < self.set_out_gap and abs(robot[1] - human[1]) >= CAR_WIDTH)
+
+    def blocks_set_out_along(self, states: np.ndarray, robot: np.ndarray, human: np.ndarray) -> np.ndarray:
+        """Per candidate, whether the set-out rule holds it back ``[C]``: as :meth:`blocks_set_out`,
+        with the robot moving as the candidate moves it (``states [C, 15, 6]`` at steps t+1..t+15,
+        then holding its last speed) instead of keeping its present speed, so that a candidate
+        pulling clear of the human may set out as soon as its own motion takes it clear, and one
+        braking in front of the human may not."""
+        steps = DT * np.arange(0, HORIZON + 1)
+        x = np.concatenate([np.full((len(states), 1), robot[0]), states[:, :, 0]], axis=1)  # [C, 16]
+        times = self.set_out_times
+        inside = np.minimum(times, steps[-1])
+        index = np.minimum((inside / DT).astype(int), HORIZON - 1)  # linear within each step
+        share = (inside - steps[index]) / DT
+        robot_x = x[:, index] * (1 - share) + x[:, index + 1] * share + states[:, -1:, 2] * (times - inside)
+        gaps = robot_x - human[0] - human[2] * times
+        return (np.abs(gaps).min(1) < self.set_out_gap) & (abs(robot[1] - human[1]) >= CAR_WIDTH)
 
     def fallback_for(self, history: np.ndarray, first_action: int, goal_y: float | None) -> Mode | None:
         """The mode a plan from both cars' states ``history [t+1, 2, 6]`` (robot, human; the present
@@ -599,8 +619,9 @@ class Planner:
         ``goal_y``; none for a cost without one): turning back (:func:`turn_backs`, once the robot,
         at the last step of ``history``, is ``commit_offset`` from the other lane's centre) and
         setting out beside the human (:func:`set_outs`, while the human would be less than
-        ``set_out_gap`` ahead or behind as the robot moves across, and is not in the robot's lane),
-        and then, before it has set out, not taking the way out of the stand-off
+        ``set_out_gap`` ahead or behind as the candidate moves the robot across, and is not in the
+        robot's lane: :meth:`Mode.blocks_set_out_along`), and then, in a stand-off
+        (:meth:`Mode.blocks_set_out`) before it has set out, not taking the way out of the stand-off
         (:meth:`Mode.way_out`, with ``standoff_exit_cost``); in the goal lane below
         :data:`YIELD_SPEED_FLOOR`, ending the horizon short of it (``progress_cost`` per m/s); and
         coming short of stopping behind it (:func:`stopping_shortfall`, with ``follow_braking``)."""
@@ -612,11 +633,13 @@ class Planner:
             robot, human = history[-1]
             if abs(robot[1] - LANE_CENTRE_Y[other]) >= mode.commit_offset:
                 rules += mode.turn_back_cost * turn_backs(candidates.actions, goal)
-            if mode.blocks_set_out(robot, human):
-                rules += SET_OUT_COST * set_outs(candidates.actions, goal)
-                if mode.standoff_exit_cost and Action(int(candidates.actions[0, 0])).lane != goal:  # not set out
-                    way = mode.way_out(history)
-                    rules += mode.standoff_exit_cost * (acceleration_indices(candidates.actions[:, 1]) != way)
+            if mode.set_out_gap:
+                blocked = mode.blocks_set_out_along(candidates.states, robot, human)
+                rules += SET_OUT_COST * (set_outs(candidates.actions, goal) & blocked)
+            not_set_out = Action(int(candidates.actions[0, 0])).lane != goal
+            if mode.standoff_exit_cost and not_set_out and mode.blocks_set_out(robot, human):
+                way = mode.way_out(history)
+                rules += mode.standoff_exit_cost * (acceleration_indices(candidates.actions[:, 1]) != way)
             if mode.progress_cost and lane_of(robot[1:2])[0] == goal and robot[2] < YIELD_SPEED_FLOOR:
                 rules += mode.progress_cost * np.maximum(YIELD_SPEED_FLOOR - candidates.states[:, -1, 2], 0.0)
         if mode.follow_braking:
