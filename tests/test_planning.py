@@ -452,7 +452,7 @@ def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_w
 def test_the_set_out_rule_moves_the_robot_as_each_candidate_does():
     """The human 1 m behind the robot and 6 m/s slower is 4.6 m behind 0.6 s from now if the robot
     keeps its speed: too close to set out; 5.3 m behind if the robot accelerates at 4 m/s² from now
-    (the paper's motion reaches it at once): room; 3.5 m if it brakes at 6 m/s². A candidate that
+    (the decisive motion reaches it at once): room; 3.5 m if it brakes at 6 m/s². A candidate that
     holds its speed is judged as the robot keeping it (:meth:`Mode.blocks_set_out`)."""
     mode = MODES["decisive"]
     robot = np.array([-120.0, RIGHT, 30.0, 0.0, 0.0, 0.0])
