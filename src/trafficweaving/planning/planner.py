@@ -136,7 +136,7 @@ class Mode:
         and is not in the robot's lane; with ``after`` (s), whether it would still hold the robot
         that much later."""
         crossing_gaps = robot[0] - human[0] + (robot[2] - human[2]) * (after + self.set_out_times)
-        return bool(np.abs(crossing_gaps).min() < self.set_out_gap and abs(robot[1] - human[1]) >= CAR_WIDTH)
+        return bool(self._too_close(crossing_gaps, robot, human))
 
     def blocks_set_out_along(self, states: np.ndarray, robot: np.ndarray, human: np.ndarray) -> np.ndarray:
         """Per candidate, whether the set-out rule holds it back ``[C]``: as :meth:`blocks_set_out`,
@@ -151,8 +151,14 @@ class Mode:
         index = np.minimum((inside / DT).astype(int), HORIZON - 1)  # linear within each step
         share = (inside - steps[index]) / DT
         robot_x = x[:, index] * (1 - share) + x[:, index + 1] * share + states[:, -1:, 2] * (times - inside)
-        gaps = robot_x - human[0] - human[2] * times
-        return (np.abs(gaps).min(1) < self.set_out_gap) & (abs(robot[1] - human[1]) >= CAR_WIDTH)
+        return self._too_close(robot_x - human[0] - human[2] * times, robot, human)
+
+    def _too_close(self, crossing_gaps: np.ndarray, robot: np.ndarray, human: np.ndarray) -> np.ndarray:
+        """The set-out rule's test on the gaps (m, robot minus human) at :attr:`set_out_times`,
+        ``crossing_gaps [..., 15]``, from both cars' present states ``robot [6]``, ``human [6]``:
+        any gap shorter than ``set_out_gap`` either way, with the human not in the robot's lane
+        ``[...]``."""
+        return (np.abs(crossing_gaps).min(-1) < self.set_out_gap) & (abs(robot[1] - human[1]) >= CAR_WIDTH)
 
     def fallback_for(self, history: np.ndarray, first_action: int, goal_y: float | None) -> Mode | None:
         """The mode a plan from both cars' states ``history [t+1, 2, 6]`` (robot, human; the present
