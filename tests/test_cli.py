@@ -198,31 +198,31 @@ def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoin
     from trafficweaving.model.mixture import Mixture
 
     data, model, folds = tmp_path / "d.parquet", tmp_path / "m.pt", tmp_path / "folds"
-    run(capsys, "generate", "--trials", 9, "--seed", 3, "--out", data, "--json")
+    run(capsys, "generate", "--trials", 6, "--seed", 3, "--out", data, "--json")
     run(capsys, "train", "--data", data, "--out", model, "--steps", 2, "--variant", "cvae-hold", "--json")
     run(capsys, "crossval", "--data", data, "--folds", 3, "--init", model, "--steps", 2, "--validate-every", 2,
         "--out", folds, "--json")
     code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--out", tmp_path / "c.pt",
-                       "--out-folds", tmp_path / "cfolds", "--samples", 10, "--temperatures", "1,2", "--scales", "1,1.5,2",
+                       "--out-folds", tmp_path / "cfolds", "--samples", 10, "--temperatures", "1,2", "--scales", "1,2",
                        "--json")
     report = json.loads(out)
-    grid = report["grid"]  # 2 x 3 settings, the scale in both directions, then per temperature each direction's own
-    assert code == 0 and 6 <= len(grid) <= 8 and {tuple(r["output_scale"].values()) for r in grid[:6]} == {(1, 1), (1.5, 1.5), (2, 2)}
-    assert all(r["latent_temperature"] in (1, 2) and set(r["output_scale"].values()) <= {1, 1.5, 2} for r in grid[6:])
+    grid = report["grid"]  # 2 x 2 settings, the scale in both directions, then per temperature each direction's own
+    assert code == 0 and 4 <= len(grid) <= 6 and {tuple(r["output_scale"].values()) for r in grid[:4]} == {(1, 1), (2, 2)}
+    assert all(r["latent_temperature"] in (1, 2) and set(r["output_scale"].values()) <= {1, 2} for r in grid[4:])
     scale = [report["output_scale"]["x"], report["output_scale"]["y"]]
     calibrated, payload = load_checkpoint(tmp_path / "c.pt")
     assert calibrated.latent_temperature.item() == report["latent_temperature"] and calibrated.output_scale.tolist() == scale
     assert payload["calibration"]["nll_exact"] == report["nll_exact"]
     fold, fold_payload = load_checkpoint(tmp_path / "cfolds" / "fold_2.pt")
-    assert fold.output_scale.tolist() == scale and len(fold_payload["held_out_trials"]) == 3
+    assert fold.output_scale.tolist() == scale and len(fold_payload["held_out_trials"]) == 2
     # worker processes score the same grid (their models are private copies, not shared and overwritten)
     code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--out", tmp_path / "w.pt",
-                       "--samples", 10, "--temperatures", "1,2", "--scales", "1,1.5,2", "--workers", 2, "--json")
+                       "--samples", 10, "--temperatures", "1,2", "--scales", "1,2", "--workers", 2, "--json")
     assert code == 0 and json.loads(out)["grid"] == report["grid"]
     # with a companion, the calibrated setting is then mixed with it at the weight chosen out-of-fold
     code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--companion", model,
                        "--out", tmp_path / "mixed.pt", "--out-folds", tmp_path / "mfolds", "--samples", 10,
-                       "--temperatures", "1,2", "--scales", "1,1.5,2", "--json")
+                       "--temperatures", "1,2", "--scales", "1,2", "--json")
     mixed = json.loads(out)
     extra = mixed["grid"][len(grid):]
     assert code == 0 and mixed["grid"][:len(grid)] == grid and mixed["companion"] == str(model)
@@ -299,7 +299,7 @@ def test_nested_recipe_search_chooses_candidate_and_calibration_on_inner_folds(c
     from trafficweaving.model.checkpoint import load_checkpoint
 
     data, model = tmp_path / "d.parquet", tmp_path / "m.pt"
-    run(capsys, "generate", "--trials", 9, "--seed", 3, "--out", data, "--json")
+    run(capsys, "generate", "--trials", 6, "--seed", 3, "--out", data, "--json")
     run(capsys, "train", "--data", data, "--out", model, "--steps", 2, "--variant", "cvae", "--json")
     folders = []
     for parts in ("all", "hold"):  # two candidate recipes: fine-tune everything, or the added hold head alone

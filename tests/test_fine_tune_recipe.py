@@ -122,9 +122,9 @@ def test_nested_steps_come_from_the_inner_cross_validation():
 
 
 def test_nested_crossval_trains_without_each_pair_of_folds_and_saves_the_inner_models(trials, cvae_checkpoint, tmp_path):
-    nine = trials.subset(np.arange(9))
+    six = trials.subset(np.arange(6))  # three folds of two trials
     out = tmp_path / "folds"
-    result = crossval(nine, 3, QUICK, variant="cvae-hold", init=cvae_checkpoint, nested=True, out=out, **SILENT)
+    result = crossval(six, 3, QUICK, variant="cvae-hold", init=cvae_checkpoint, nested=True, out=out, **SILENT)
     assert result.inner.shape == (3, 3, 3) and np.isnan(np.diagonal(result.inner, axis1=0, axis2=1)).all()
     # step 0 is the initial model (the paper model's density): the same on a fold whichever model holds it out
     np.testing.assert_allclose(result.inner[0, 1, 0], result.curves[1, 0], rtol=1e-6)
@@ -132,20 +132,20 @@ def test_nested_crossval_trains_without_each_pair_of_folds_and_saves_the_inner_m
     assert np.isfinite(result.inner[~np.eye(3, dtype=bool)]).all() and result.directions.shape == (3, 3, 2)
     nested_steps, nested = result.nested()
     for k, (model, held) in enumerate(out_of_fold_models(out / "nested")):  # fold k's model at its inner-chosen steps
-        fold = nine.subset(np.flatnonzero(np.isin(nine.trial_ids, held)))
+        fold = six.subset(np.flatnonzero(np.isin(six.trial_ids, held)))
         assert evaluate(model, build_exemplars(fold)).nll_exact.mean() == pytest.approx(nested[k], rel=1e-5)
         inner = out_of_fold_models(out / "nested" / f"fold_{k + 1}")
         assert len(inner) == 2 and not set(held) & {i for _, h in inner for i in h}  # the inner folds exclude fold k
         for inner_model, inner_held in inner:  # trained without folds k and j, it scores fold j as the inner curve says
-            j = next(f for f, part in enumerate(result.fold_trials) if set(nine.trial_ids[part]) == set(inner_held))
-            fold_j = nine.subset(np.flatnonzero(np.isin(nine.trial_ids, inner_held)))
+            j = next(f for f, part in enumerate(result.fold_trials) if set(six.trial_ids[part]) == set(inner_held))
+            fold_j = six.subset(np.flatnonzero(np.isin(six.trial_ids, inner_held)))
             pick = int(np.flatnonzero(result.steps == nested_steps[k])[0])
             assert evaluate(inner_model, build_exemplars(fold_j)).nll_exact.mean() == pytest.approx(result.inner[k, j, pick], rel=1e-5)
 
 
 def test_nested_crossval_with_workers_equals_one_process(trials, cvae_checkpoint):
-    nine = trials.subset(np.arange(9))
-    one = crossval(nine, 3, QUICK, variant="cvae-hold", init=cvae_checkpoint, nested=True, **SILENT)
-    two = crossval(nine, 3, QUICK, variant="cvae-hold", init=cvae_checkpoint, nested=True, workers=2, **SILENT)
+    six = trials.subset(np.arange(6))  # three folds of two trials
+    one = crossval(six, 3, QUICK, variant="cvae-hold", init=cvae_checkpoint, nested=True, **SILENT)
+    two = crossval(six, 3, QUICK, variant="cvae-hold", init=cvae_checkpoint, nested=True, workers=2, **SILENT)
     np.testing.assert_allclose(two.curves, one.curves, rtol=1e-5)
     np.testing.assert_allclose(two.inner, one.inner, rtol=1e-5)

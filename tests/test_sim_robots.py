@@ -129,7 +129,7 @@ def test_planner_robots_swap_lanes_without_collision_and_set_out_only_with_room(
     within the comfort limits (before its stand-off exit it missed its lane swap there,
     docs/closed_loop.md)."""
     starts = STARTS[[start]] if me == 0 else STARTS[[start], ::-1]
-    robot = robot_agent(spec, budget=Budget(2, 8, 32))
+    robot = robot_agent(spec, budget=Budget(1, 8, 32))
     world = run_episodes(starts, [robot, ScriptedHuman()][:: 1 if me == 0 else -1], np.random.default_rng(start))
     reasons, swap, min_dx = swapped_and_clear(world, me)
     assert reasons == ["valid"] and min_dx[0] > 6.0
