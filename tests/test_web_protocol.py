@@ -249,7 +249,7 @@ def test_recorded_trials_load_with_stats_evaluate_and_simulate(server, tmp_path)
     evaluation = _cli("evaluate", "--model", "default", "--data", str(files[0]), "--json",
                       "--coverage-samples", "10", "--ade-samples", "5", "--samples", "10")
     assert evaluation["instances"] == recorded.lengths[0] - 19 and math.isfinite(evaluation["nll_exact"])
-    summary = _cli("simulate", "--robot", "planner", "--human", f"replay:{files[0]}", "--episodes", "1",
+    summary = _cli("simulate", "--robot", "rules", "--human", f"replay:{files[0]}", "--episodes", "1",
                    "--out", str(tmp_path / "sim"), "--json")
     assert summary["episodes"] == 1
     episode = load_trials(tmp_path / "sim" / "episodes" / "episode_000000.parquet")
