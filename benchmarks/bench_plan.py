@@ -3,6 +3,8 @@
 
 Measured in one run, same process, same model:
 
+* ``cpu``: the CPU's model name and matrix instructions (native bfloat16, int8 dot products, AMX),
+  on which the bfloat16 and int8 figures depend (docs/planner.md, Speed);
 * ``matmul_peak_gflops``: PyTorch's float32 matrix multiply at the decoder's shapes (the ceiling
   for this work on this machine);
 * ``naive_seconds``: the same plan with the decoder's sampling loop written plainly in eager
@@ -48,7 +50,7 @@ from trafficweaving.dynamics import future_states
 from trafficweaving.errors import InputError
 from trafficweaving.model.checkpoint import load_model
 from trafficweaving.model.cvae import ACCEL, STATE_DIM
-from trafficweaving.model.predictor import PRECISIONS, HumanPredictor
+from trafficweaving.model.predictor import PRECISIONS, HumanPredictor, cpu_matrix_features
 from trafficweaving.planning.candidates import ACCELERATIONS, STEPS_PER_WINDOW, Action, robot_candidates
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS
@@ -186,7 +188,8 @@ def main() -> None:
     history, first = example_history(), Action.of(0.0, "right").index
     cost = PaperCost(goal_y=LANE_CENTRE_Y["left"])
 
-    report = {"threads": threads, "futures": budget.futures, "random_numbers": args.random_numbers}
+    report = {"threads": threads, "futures": budget.futures, "random_numbers": args.random_numbers,
+              "cpu": cpu_matrix_features()}
     report["matmul_peak_gflops"] = round(matmul_peak(2048, 136, 512), 1)
     planner = Planner(exact, budget)
     planner.plan(history, first, cost)  # warm-up

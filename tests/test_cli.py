@@ -366,8 +366,14 @@ def test_simulated_real_model_is_shipped_without_the_authors_weights(capsys):
 
 
 def test_bench_plan_reports_futures_and_seconds(capsys):
+    from trafficweaving.model.predictor import native_bfloat16
+
     code, out, _ = run(capsys, "bench", "plan", "--first-stage-samples", 1, "--finalists", 4,
                        "--second-stage-samples", 8, "--repeats", 1, "--json")
     report = json.loads(out)
     assert code == 0 and report["futures"] == 4096 + 4 * 8 and report["candidates"] == 4096
     assert report["seconds"] > 0 and report["device"] in ("cpu", "cuda")
+    cpu = report["cpu"]  # the CPU's matrix instructions, on which the figure depends
+    assert set(cpu) == {"model", "native_bfloat16", "int8_dot_products", "amx"} and isinstance(cpu["model"], str)
+    assert all(isinstance(cpu[k], bool) for k in ("native_bfloat16", "int8_dot_products", "amx"))
+    assert cpu["native_bfloat16"] == native_bfloat16()

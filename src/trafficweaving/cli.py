@@ -477,7 +477,7 @@ def cmd_bench(args) -> None:
     import torch
 
     from .model.checkpoint import choose_device, load_model
-    from .model.predictor import HumanPredictor
+    from .model.predictor import HumanPredictor, cpu_matrix_features
     from .planning.candidates import Action
     from .planning.costs import PaperCost
     from .planning.planner import Budget, Planner, example_history
@@ -500,7 +500,7 @@ def cmd_bench(args) -> None:
                "second_stage_samples": plans[0].second_stage_samples, "deadline": args.deadline,
                "device": str(device), "threads": torch.get_num_threads(), "model": args.model,
                "precision": human_model.precision,
-               "timings": {k: round(v, 4) for k, v in plans[-1].timings.items()}}
+               "timings": {k: round(v, 4) for k, v in plans[-1].timings.items()}, "cpu": cpu_matrix_features()}
     _emit(args, payload, f"plan: {payload['futures']} human futures for {payload['candidates']} candidates in "
                          f"{payload['seconds']:.3f} s (median of {args.repeats}; {device}, {payload['threads']} threads)")
 

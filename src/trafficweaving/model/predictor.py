@@ -27,16 +27,33 @@ PRECISIONS = ("auto", "float32", "bfloat16", "int8")
 """Choices of :func:`resolve_precision`."""
 
 
+def _cpuinfo() -> tuple[str, set[str]]:
+    """The CPU's model name and feature flags from ``/proc/cpuinfo`` (empty where there is none)."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return "", set()
+    field = lambda key: next((line.split(":", 1)[1].strip() for line in lines if line.startswith(key)), "")  # noqa: E731
+    return field("model name"), set(field("flags").split())
+
+
 def native_bfloat16(device: torch.device | str = "cpu") -> bool:
     """Whether ``device`` is a CPU with native bfloat16 matrix instructions (AVX512-BF16 or AMX),
     where bfloat16 matrix multiplies run about twice as fast as float32."""
     if torch.device(device).type != "cpu" or not torch.backends.mkldnn.is_available():
         return False
-    try:
-        flags = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-    return "avx512_bf16" in flags or "amx_bf16" in flags
+    return bool(_cpuinfo()[1] & {"avx512_bf16", "amx_bf16"})
+
+
+def cpu_matrix_features() -> dict:
+    """What the CPU offers the decoder's matrix multiplies, on which the bfloat16 and int8 plans'
+    speeds depend (docs/planner.md, Speed): its ``model`` name, ``native_bfloat16``
+    (:func:`native_bfloat16`), ``int8_dot_products`` (AVX512-VNNI, AVX-VNNI or AMX: what
+    ``torch._int_mm`` runs on) and ``amx`` (tile matrix multiplies)."""
+    model, flags = _cpuinfo()
+    return {"model": model, "native_bfloat16": native_bfloat16(),
+            "int8_dot_products": bool(flags & {"avx512_vnni", "avx_vnni", "amx_int8"}),
+            "amx": bool(flags & {"amx_bf16", "amx_int8", "amx_tile"})}
 
 
 def resolve_precision(precision: str, device: torch.device | str = "cpu") -> torch.dtype:
