@@ -20,7 +20,8 @@ from trafficweaving.scenario import (CAR_LENGTH, COLLISION_DX, CUTOFF_X, DT, LAN
                                     START_X, SWAP_THRESHOLD_Y, lane_of, study_initial_conditions, time_to_collision)
 from trafficweaving.sim.batch import EpisodeFailed, episode_path, simulate
 from trafficweaving.sim.episodes import EpisodeSpec, run_episode
-from trafficweaving.sim.metrics import (SCORE_WEIGHTS, Z95, aggregate, comfort_violations, episode_metrics, lane_reversals,
+from trafficweaving.sim.metrics import (COMFORT_LIMITS, SCORE_WEIGHTS, Z95, aggregate, comfort_violations, comfort_violations_by_limit,
+                                        episode_metrics, lane_reversals,
                                        latency_summary, mean_interval, wilson_interval)
 
 LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
@@ -160,6 +161,8 @@ def test_a_harsh_lane_change_breaks_comfort_and_a_close_cut_breaks_ttc():
     human = car(START_X - 40, 30, RIGHT, LEFT, change=(20, 70))
     harsh = metrics(car(START_X + 10, 30, LEFT, RIGHT, change=(20, 30)), human)["score"]  # 1 s: over 20 m/s²
     assert harsh["comfort"] == 0.0 and harsh["comfort_violations"] > 0 and harsh["score"] > 0
+    by_limit = harsh["comfort_violations_by_limit"]
+    assert by_limit["lateral_accel"] > 0 and max(by_limit.values()) <= harsh["comfort_violations"] <= sum(by_limit.values())
     assert comfort_violations(car(START_X, 30, LEFT, RIGHT, change=(20, 30))[:, 4:6]).any()
     # 12 m behind the human in its lane and 3 m/s faster, the robot leaves the lane with 0.9 m to spare
     close = metrics(car(START_X - 12, 31, LEFT, RIGHT, change=(5, 45)), car(START_X, 28, LEFT))
@@ -167,6 +170,24 @@ def test_a_harsh_lane_change_breaks_comfort_and_a_close_cut_breaks_ttc():
     ttc = time_to_collision(car(START_X - 12, 31, LEFT), car(START_X, 28, LEFT))
     np.testing.assert_allclose(ttc[0], (12 - CAR_LENGTH) / 3.0)
     assert np.isinf(time_to_collision(car(START_X, 31, LEFT), car(START_X - 12, 28, LEFT))).all()  # opening gap
+
+
+@pytest.mark.parametrize("xdd, ydd, broken", [
+    (-5.0, 0.0, {"longitudinal_accel"}),  # braking harder than -4.05 m/s², held: no jerk
+    (0.0, 5.0, {"lateral_accel"}),
+    ((0.0, 0.5), 0.0, {"longitudinal_jerk"}),  # a 0.5 m/s² step in 0.1 s: 5 m/s³ along, under 8.37 in all
+    (0.0, (0.0, 1.0), {"jerk"}),  # 10 m/s³ sideways: only the total jerk has a limit there
+    ((0.0, 1.0), 0.0, {"longitudinal_jerk", "jerk"}),
+    (2.0, 4.0, set()),
+])
+def test_comfort_violations_name_the_limit_each_step_breaks(xdd, ydd, broken):
+    steps = 10
+    column = lambda v: np.full(steps, v) if np.isscalar(v) else np.where(np.arange(steps) < 5, *v)  # noqa: E731
+    acc = np.stack([column(xdd), column(ydd)], axis=1)
+    by_limit = comfort_violations_by_limit(acc)
+    assert set(by_limit) == set(COMFORT_LIMITS) and {k for k, v in by_limit.items() if v.any()} == broken
+    np.testing.assert_array_equal(comfort_violations(acc), np.logical_or.reduce(list(by_limit.values())))
+    assert not any(v[0] for k, v in by_limit.items() if "jerk" in k)  # no jerk at the first step
 
 
 def test_lane_reversals_count_turns_back_towards_the_start_lane():
@@ -233,6 +254,13 @@ def test_aggregate_breakdown():
     assert s["score_parts"]["no_collision"]["count"] == 2 and s["score_parts"]["progress"]["n"] == 3
     assert s["lane_reversals"]["at_most_one"]["count"] == 3
     assert s["comfort_violation_steps"]["steps"] == 3 * T
+    by_limit = s["comfort_violation_steps"]["by_limit"]
+    for k in COMFORT_LIMITS:  # each limit's steps and episodes summed over the three
+        assert by_limit[k]["steps"] == sum(r["metrics"]["score"]["comfort_violations_by_limit"][k] for r in records)
+        assert by_limit[k]["episodes"] == sum(r["metrics"]["score"]["comfort_violations_by_limit"][k] > 0 for r in records)
+    older = [{**r, "metrics": {**r["metrics"], "score": {k: v for k, v in r["metrics"]["score"].items()
+                                                         if k != "comfort_violations_by_limit"}}} for r in records]
+    assert aggregate(older)["comfort_violation_steps"]["by_limit"] is None  # a log from before the breakdown
     json.dumps(s, allow_nan=False)
 
 

@@ -260,6 +260,14 @@ def simulate(episodes: int, robot: str, human: str, seed: int = 0, workers: int 
     return summary
 
 
+def _episodes_by_limit(by_limit: dict | None) -> str:
+    """How many episodes break each comfort limit, for :func:`summary_table` (nothing for logs that
+    predate the breakdown)."""
+    if by_limit is None:
+        return ""
+    return " (episodes over each limit: " + ", ".join(f"{k} {v['episodes']}" for k, v in by_limit.items()) + ")"
+
+
 def summary_table(summary: dict) -> str:
     """The summary as readable text: the overall rates and a table by initial condition."""
     def pct(r: dict) -> str:
@@ -289,7 +297,8 @@ def summary_table(summary: dict) -> str:
         f"{num(parts['progress']['mean'])}, comfort {num(parts['comfort']['mean'])})   lane reversals "
         f"{num(summary['lane_reversals']['mean'])} per episode, at most one in {pct(summary['lane_reversals']['at_most_one'])}   "
         f"lateral swings {num(summary['lateral_swings']['mean'])} per episode   "
-        f"comfort violations {summary['comfort_violation_steps']['count']} of {summary['comfort_violation_steps']['steps']} steps",
+        f"comfort violations {summary['comfort_violation_steps']['count']} of {summary['comfort_violation_steps']['steps']} steps"
+        + _episodes_by_limit(summary['comfort_violation_steps']['by_limit']),
         f"longitudinal gap while overlapping laterally: min {num(gap['min'])} m, mean of episodes {num(gap['mean'])} m; "
         f"closest centres: mean of episodes {num(summary['min_distance_m']['mean'])} m",
         (f"planner latency median {num(lat['median'], 3)} s, p99 {num(lat['p99'], 3)} s over {lat['plans']} plans; "

@@ -148,15 +148,22 @@ REVERSAL_SPEED = 0.2
 """Lateral speed (m/s) above which the robot counts as moving sideways for :func:`lane_reversals`."""
 
 
-def comfort_violations(accelerations: np.ndarray, dt: float = DT) -> np.ndarray:
-    """Steps ``[T]`` (bool) at which accelerations ``[T, 2]`` (m/s², ``[xdd, ydd]``) or their jerk
-    (differences over ``dt``; none at the first step) break :data:`COMFORT_LIMITS`."""
+def comfort_violations_by_limit(accelerations: np.ndarray, dt: float = DT) -> dict[str, np.ndarray]:
+    """Per limit of :data:`COMFORT_LIMITS` (its key), the steps ``[T]`` (bool) at which
+    accelerations ``[T, 2]`` (m/s², ``[xdd, ydd]``) or their jerk (differences over ``dt``; none at
+    the first step) break it."""
     low, high = COMFORT_LIMITS["longitudinal_accel"]
     jerk = np.vstack([np.zeros((1, 2)), np.diff(accelerations, axis=0) / dt])
-    return ((accelerations[:, 0] < low) | (accelerations[:, 0] > high)
-            | (np.abs(accelerations[:, 1]) > COMFORT_LIMITS["lateral_accel"])
-            | (np.abs(jerk[:, 0]) > COMFORT_LIMITS["longitudinal_jerk"])
-            | (np.hypot(jerk[:, 0], jerk[:, 1]) > COMFORT_LIMITS["jerk"]))
+    return {"longitudinal_accel": (accelerations[:, 0] < low) | (accelerations[:, 0] > high),
+            "lateral_accel": np.abs(accelerations[:, 1]) > COMFORT_LIMITS["lateral_accel"],
+            "longitudinal_jerk": np.abs(jerk[:, 0]) > COMFORT_LIMITS["longitudinal_jerk"],
+            "jerk": np.hypot(jerk[:, 0], jerk[:, 1]) > COMFORT_LIMITS["jerk"]}
+
+
+def comfort_violations(accelerations: np.ndarray, dt: float = DT) -> np.ndarray:
+    """Steps ``[T]`` (bool) at which accelerations ``[T, 2]`` (m/s², ``[xdd, ydd]``) or their jerk
+    break any of :data:`COMFORT_LIMITS` (:func:`comfort_violations_by_limit`)."""
+    return np.logical_or.reduce(list(comfort_violations_by_limit(accelerations, dt).values()))
 
 
 def lane_reversals(y: np.ndarray, yd: np.ndarray) -> int:
@@ -199,8 +206,8 @@ def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swappe
     stays at least :data:`TTC_LIMIT_S` at every step, else 0), ``progress`` (the mean of how much of
     the road to the cutoff was left when the robot crossed the divider and of its mean speed until
     the cutoff relative to its start speed, at most 1) and ``comfort`` (1 with no step over
-    :data:`COMFORT_LIMITS`, else 0); also ``comfort_violations`` (the robot's steps over them)
-    and ``steps``. ``crossed``: the first step the robot is in the other lane (None: never)."""
+    :data:`COMFORT_LIMITS`, else 0); also ``comfort_violations`` (the robot's steps over them),
+    ``comfort_violations_by_limit`` (its steps over each limit) and ``steps``. ``crossed``: the first step the robot is in the other lane (None: never)."""
     me, x = states[robot], states[robot, :, 0]
     before_cutoff = np.maximum.accumulate(x) < CUTOFF_X
     multipliers = {"no_collision": outcome != "collision",
@@ -210,12 +217,14 @@ def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swappe
     road = CUTOFF_X - x[0]
     swap_left = float(np.clip((CUTOFF_X - x[crossed]) / road, 0.0, 1.0)) if crossed is not None and road > 0 else 0.0
     speed_kept = float(min(1.0, me[before_cutoff, 2].mean() / me[0, 2])) if me[0, 2] > 0 else 1.0
-    violations = comfort_violations(me[:, 4:6], dt)
+    by_limit = comfort_violations_by_limit(me[:, 4:6], dt)
+    violations = np.logical_or.reduce(list(by_limit.values()))
     parts = {"ttc": float(ttc.min() >= TTC_LIMIT_S), "progress": 0.5 * (swap_left + speed_kept),
              "comfort": float(not violations.any())}
     mean = sum(SCORE_WEIGHTS[k] * v for k, v in parts.items()) / sum(SCORE_WEIGHTS.values())
     return {"score": float(all(multipliers.values())) * mean, "multipliers": multipliers, **parts,
-            "comfort_violations": int(violations.sum()), "steps": len(violations)}
+            "comfort_violations": int(violations.sum()),
+            "comfort_violations_by_limit": {k: int(v.sum()) for k, v in by_limit.items()}, "steps": len(violations)}
 
 
 # ---------------------------------------------------------------- aggregates
@@ -291,8 +300,18 @@ def _group(records: Sequence[dict]) -> dict:
                            "at_most_one": rate([r <= 1 for r in column("lane_reversals")])},
         "lateral_swings": mean_interval([m.get("lateral_swings") for m in metrics]),
         "comfort_violation_steps": {"count": sum(m["score"]["comfort_violations"] for m in metrics),
-                                    "steps": sum(m["score"]["steps"] for m in metrics)},
+                                    "steps": sum(m["score"]["steps"] for m in metrics),
+                                    "by_limit": _violations_by_limit(metrics)},
     }
+
+
+def _violations_by_limit(metrics: Sequence[dict]) -> dict | None:
+    """Per limit of :data:`COMFORT_LIMITS`, the robot's ``steps`` over it and the ``episodes`` with
+    any; None when an episode's log predates the breakdown."""
+    counts = [m["score"].get("comfort_violations_by_limit") for m in metrics]
+    if any(c is None for c in counts):
+        return None
+    return {k: {"steps": sum(c[k] for c in counts), "episodes": sum(c[k] > 0 for c in counts)} for k in COMFORT_LIMITS}
 
 
 def aggregate(records: Sequence[dict]) -> dict:
@@ -312,8 +331,9 @@ def aggregate(records: Sequence[dict]) -> dict:
     the same rates and means per :func:`initial_condition_key`, sorted (unknown ``dv`` last); also
     ``score`` (t-interval), ``score_parts`` (the multipliers as rates, the averaged parts as means),
     ``lane_reversals`` (mean, and the rate of episodes with ``at_most_one``), ``lateral_swings`` and
-    ``comfort_violation_steps`` (``count`` of the robot's steps over the limits, of ``steps``).
-    Undefined values are None (strict JSON).
+    ``comfort_violation_steps`` (``count`` of the robot's steps over the limits, of ``steps``, and
+    ``by_limit``: per limit of :data:`COMFORT_LIMITS` the ``steps`` over it and the ``episodes``
+    with any). Undefined values are None (strict JSON).
     """
     summary = _group(records)
     outcomes = [r["metrics"]["outcome"] for r in records]
