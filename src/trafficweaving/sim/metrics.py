@@ -207,7 +207,8 @@ def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swappe
     the road to the cutoff was left when the robot crossed the divider and of its mean speed until
     the cutoff relative to its start speed, at most 1) and ``comfort`` (1 with no step over
     :data:`COMFORT_LIMITS`, else 0); also ``comfort_violations`` (the robot's steps over them),
-    ``comfort_violations_by_limit`` (its steps over each limit) and ``steps``. ``crossed``: the first step the robot is in the other lane (None: never)."""
+    ``comfort_violations_by_limit`` (its steps over each limit) and ``steps``. ``crossed``: the
+    first step the robot is in the other lane (None: never)."""
     me, x = states[robot], states[robot, :, 0]
     before_cutoff = np.maximum.accumulate(x) < CUTOFF_X
     multipliers = {"no_collision": outcome != "collision",
@@ -217,14 +218,14 @@ def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swappe
     road = CUTOFF_X - x[0]
     swap_left = float(np.clip((CUTOFF_X - x[crossed]) / road, 0.0, 1.0)) if crossed is not None and road > 0 else 0.0
     speed_kept = float(min(1.0, me[before_cutoff, 2].mean() / me[0, 2])) if me[0, 2] > 0 else 1.0
-    by_limit = comfort_violations_by_limit(me[:, 4:6], dt)
-    violations = np.logical_or.reduce(list(by_limit.values()))
+    violations = comfort_violations(me[:, 4:6], dt)
     parts = {"ttc": float(ttc.min() >= TTC_LIMIT_S), "progress": 0.5 * (swap_left + speed_kept),
              "comfort": float(not violations.any())}
     mean = sum(SCORE_WEIGHTS[k] * v for k, v in parts.items()) / sum(SCORE_WEIGHTS.values())
     return {"score": float(all(multipliers.values())) * mean, "multipliers": multipliers, **parts,
             "comfort_violations": int(violations.sum()),
-            "comfort_violations_by_limit": {k: int(v.sum()) for k, v in by_limit.items()}, "steps": len(violations)}
+            "comfort_violations_by_limit": {k: int(v.sum()) for k, v in comfort_violations_by_limit(me[:, 4:6], dt).items()},
+            "steps": len(violations)}
 
 
 # ---------------------------------------------------------------- aggregates
