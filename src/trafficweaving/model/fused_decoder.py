@@ -39,7 +39,7 @@ COMPILE_OPTIONS = {"cpp.enable_floating_point_contract_flag": "fast", "assert_in
 :func:`rational_sigmoid`'s polynomials), which is most of a step's arithmetic; and the table rows a
 step gathers (by candidate and latent value) are not bounds-checked element by element: the indices
 are made in range by :meth:`FusedDecoder.decode` (``torch.unique``'s inverse and the latent values
-of the model), and the check costs about 5 % of a plan on AVX-512 CPUs."""
+of the model), and the check cost about 5 % of an int8 plan on an AVX-512 VNNI CPU (docs/planner.md)."""
 TANH_CLAMP = 7.90531110763549805
 """Where :func:`rational_sigmoid`'s tanh is clamped: beyond it float32 tanh is ±1."""
 INT8_RANGE = 127

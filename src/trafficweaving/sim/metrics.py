@@ -163,7 +163,12 @@ def comfort_violations_by_limit(accelerations: np.ndarray, dt: float = DT) -> di
 def comfort_violations(accelerations: np.ndarray, dt: float = DT) -> np.ndarray:
     """Steps ``[T]`` (bool) at which accelerations ``[T, 2]`` (m/s², ``[xdd, ydd]``) or their jerk
     break any of :data:`COMFORT_LIMITS` (:func:`comfort_violations_by_limit`)."""
-    return np.logical_or.reduce(list(comfort_violations_by_limit(accelerations, dt).values()))
+    return _any_limit(comfort_violations_by_limit(accelerations, dt))
+
+
+def _any_limit(by_limit: dict[str, np.ndarray]) -> np.ndarray:
+    """The steps ``[T]`` over any limit, from :func:`comfort_violations_by_limit`'s steps per limit."""
+    return np.logical_or.reduce(list(by_limit.values()))
 
 
 def lane_reversals(y: np.ndarray, yd: np.ndarray) -> int:
@@ -218,14 +223,14 @@ def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swappe
     road = CUTOFF_X - x[0]
     swap_left = float(np.clip((CUTOFF_X - x[crossed]) / road, 0.0, 1.0)) if crossed is not None and road > 0 else 0.0
     speed_kept = float(min(1.0, me[before_cutoff, 2].mean() / me[0, 2])) if me[0, 2] > 0 else 1.0
-    violations = comfort_violations(me[:, 4:6], dt)
+    by_limit = comfort_violations_by_limit(me[:, 4:6], dt)
+    violations = _any_limit(by_limit)
     parts = {"ttc": float(ttc.min() >= TTC_LIMIT_S), "progress": 0.5 * (swap_left + speed_kept),
              "comfort": float(not violations.any())}
     mean = sum(SCORE_WEIGHTS[k] * v for k, v in parts.items()) / sum(SCORE_WEIGHTS.values())
     return {"score": float(all(multipliers.values())) * mean, "multipliers": multipliers, **parts,
             "comfort_violations": int(violations.sum()),
-            "comfort_violations_by_limit": {k: int(v.sum()) for k, v in comfort_violations_by_limit(me[:, 4:6], dt).items()},
-            "steps": len(violations)}
+            "comfort_violations_by_limit": {k: int(v.sum()) for k, v in by_limit.items()}, "steps": len(violations)}
 
 
 # ---------------------------------------------------------------- aggregates
