@@ -17,10 +17,13 @@ from trafficweaving.web.room import DriveConfig
 
 
 @contextmanager
-def drive_server(out, mode: str = "robot", countdown: int = 0, max_rooms: int = 64, host: str = "127.0.0.1"):
+def drive_server(out, mode: str = "robot", countdown: int = 0, max_rooms: int = 64, host: str = "127.0.0.1",
+                 allowed_hosts=(), limits=None):
     """A running drive server on ``host`` recording into ``out``; yields its URL
-    (``http://127.0.0.1:PORT/``; off loopback with ``?key=...``)."""
-    server = build_server(DriveConfig(mode=mode, countdown_s=countdown, max_rooms=max_rooms), host, 0, str(out))
+    (``http://127.0.0.1:PORT/``; off loopback with ``?key=...``). ``allowed_hosts`` and ``limits``:
+    as ``build_server``'s."""
+    server = build_server(DriveConfig(mode=mode, countdown_s=countdown, max_rooms=max_rooms), host, 0, str(out),
+                          allowed_hosts, limits)
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 30

@@ -68,7 +68,7 @@ def set_tensor(name: str, value):
 # ---------------------------------------------------------------- format and digest
 def test_round_trip_keeps_every_tensor_and_field(model, saved):
     loaded, payload = load_checkpoint(saved)
-    assert payload["version"] == VERSION == 5 and payload[HASH_FIELD] == tensor_digest(payload)
+    assert payload["version"] == VERSION == 6 and payload[HASH_FIELD] == tensor_digest(payload)
     for name, tensor in model.state_dict().items():
         assert torch.equal(loaded.state_dict()[name], tensor) and payload["state_dict"][name].dtype == tensor.dtype
     assert payload["step"] == 7 and payload["history"] == [(5, -1.5)] and payload["train_config"] == {"steps": 7}
@@ -224,7 +224,7 @@ def test_older_versions_load_with_their_density(model, saved):
         return change
     v2, _ = load_checkpoint(edited(saved, "v2.pt", as_version(2)))
     v3, _ = load_checkpoint(edited(saved, "v3.pt", as_version(3)))
-    assert VERSION == 5 and v2.output_scale.tolist() == v3.output_scale.tolist() == [2.0, 2.0]
+    assert VERSION == 6 and v2.output_scale.tolist() == v3.output_scale.tolist() == [2.0, 2.0]
     torch.testing.assert_close(v2.hold.widths(), model.hold.widths() + np.log(2.0))
     torch.testing.assert_close(v3.hold.widths(), model.hold.widths())
     fails(edited(saved, "v4.pt", set_tensor("output_scale", torch.tensor(2.0))), r"output_scale has shape \[\] \(expected \[2\]\)")
@@ -234,7 +234,7 @@ def test_version_1_and_missing_digests_are_refused(saved):
     payload = torch.load(saved, weights_only=True)
     old = {k: v for k, v in payload.items() if k != HASH_FIELD} | {"version": 1}
     torch.save(old, saved.with_name("v1.pt"))
-    fails(saved.with_name("v1.pt"), r"v1\.pt: checkpoint version 1 \(expected version 2, 3, 4, 5, which carry a SHA-256")
+    fails(saved.with_name("v1.pt"), r"v1\.pt: checkpoint version 1 \(expected version 2, 3, 4, 5, 6, which carry a SHA-256")
     torch.save({**old, "version": 2}, saved.with_name("nohash.pt"))
     fails(saved.with_name("nohash.pt"), r"nohash\.pt: checkpoint has no valid tensor_sha256")
     torch.save({**payload, HASH_FIELD: "0" * 64}, saved.with_name("zero.pt"))

@@ -65,7 +65,7 @@ def test_plot_writes_pngs(capsys, tmp_path):
 @pytest.mark.parametrize("argv, expected", [
     (["stats", "{tmp}/absent.parquet"], "no such file"),
     (["stats", "{tmp}/junk.parquet"], "not a readable Parquet file"),
-    (["generate", "--trials", "0", "--out", "{tmp}/x.parquet"], "argument --trials: expected an integer >= 1"),
+    (["generate", "--trials", "0", "--out", "{tmp}/x.parquet"], "argument --trials: expected an integer in 1..100000"),
     (["import", "hitl", "{tmp}/junk.parquet", "--out", "{tmp}/x.parquet"], "junk.parquet"),
     (["import", "rosbag", "{tmp}/nowhere", "--out", "{tmp}/x.parquet"], "nowhere"),
 ])

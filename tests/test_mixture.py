@@ -101,10 +101,15 @@ def test_a_mixture_checkpoint_round_trips_and_a_malformed_one_is_refused(compone
     assert isinstance(loaded, Mixture) and loaded.weights == pytest.approx([0.9, 0.1])
     assert [c.config for c in loaded.components] == [a.config, b.config] and payload["summary"] == "a test mixture"
     np.testing.assert_array_equal(evaluate(loaded, exemplars).nll_exact, evaluate(mixture, exemplars).nll_exact)
-    for change, pattern in ((lambda m: m | {"weights": [0.9]}, "not a mixture"),
-                            (lambda m: m | {"weights": [0.9, -0.1]}, "not a mixture"),
-                            (lambda m: m | {"person_weights": [0.0, 0.0]}, "person_weights is not a list of weights"),
-                            (lambda m: m | {"person_weights": [1.0]}, "person_weights is not a list of weights"),
+    f64 = lambda *w: torch.tensor(w, dtype=torch.float64)  # noqa: E731
+    for change, pattern in ((lambda m: m | {"weights": f64(0.9)}, r"mixture\.weights is \[0\.9\] \(expected a float64 tensor of 2"),
+                            (lambda m: m | {"weights": f64(0.9, -0.1)}, r"mixture\.weights is \[0\.9, -0\.1\]"),
+                            (lambda m: m | {"weights": [0.9, 0.1]}, r"mixture\.weights is \[0\.9, 0\.1\] \(expected a float64 tensor"),
+                            (lambda m: m | {"weights": f64(0.9, 0.1).float()}, r"mixture\.weights is"),
+                            (lambda m: m | {"person_weights": f64(0.0, 0.0)}, r"mixture\.person_weights is \[0\.0, 0\.0\]"),
+                            (lambda m: m | {"person_weights": f64(1.0)}, r"mixture\.person_weights is \[1\.0\]"),
+                            (lambda m: {k: v for k, v in m.items() if k != "weights"}, r"mixture\.weights is None"),
+                            (lambda m: m | {"components": []}, "checkpoint field mixture is not a mixture"),
                             (lambda m: m | {"components": [{**m["components"][0], "state_dict": {}}]},
                              r"mixture component 2\): checkpoint lacks tensor")):
         edited = read_checkpoint(path)

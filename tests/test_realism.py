@@ -122,4 +122,4 @@ def test_self_play_generates_the_study_with_a_learned_driver_in_both_cars(tmp_pa
     # drivers that never change lanes cannot play the study: a clear error, no file
     bad = tmp_path / "never.parquet"
     assert main(["generate", "--trials", "4", "--drivers", "constant-velocity", "--out", str(bad)]) == 2
-    assert "trials simulated with drivers 'constant-velocity' are valid" in capsys.readouterr().err and not bad.exists()
+    assert "trials simulated with drivers 'constant-velocity' were rejected (no_lane_swap" in capsys.readouterr().err and not bad.exists()

@@ -9,6 +9,7 @@ replace the link or the device node itself, not write through it).
 from __future__ import annotations
 
 import os
+import re
 import stat
 import uuid
 from contextlib import contextmanager
@@ -37,24 +38,42 @@ def check_output_file(path: str | os.PathLike, what: str = "output") -> Path:
     if mode is not None and not stat.S_ISREG(mode):
         raise InputError(f"{what} {path}: is a special file (expected a regular file path; devices, FIFOs and "
                          f"sockets are not replaced)")
+    _check_parents(path, what)
+    return path
+
+
+def _check_parents(path: Path, what: str) -> None:
+    """InputError when the nearest existing folder above ``path`` is a file (nothing could be
+    created below it)."""
     for parent in path.parents:
         if parent.exists():
             if not parent.is_dir():
                 raise InputError(f"{what} {path}: {parent} is not a folder (expected a path in a folder)")
             break
-    return path
 
 
 def check_output_folder(path: str | os.PathLike, what: str = "output folder") -> Path:
     """``path`` as a :class:`Path` if outputs may be written into it: not empty, not an existing
-    file (a symlink to a folder is written through)."""
+    file (a symlink to a folder is written through), not below a file."""
     text = os.fspath(path)
     if not text.strip():
         raise InputError(f"{what}: empty path (expected a folder)")
     path = Path(text)
     if path.exists() and not path.is_dir():
         raise InputError(f"{what} {path}: is a file (expected a folder)")
+    _check_parents(path, what)
     return path
+
+
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """Whether paths ``a`` and ``b`` name one file, existing or not: the same path once
+    symlinks, ``.`` and ``..`` are resolved, or the same existing file (a hard link)."""
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # either does not exist (yet)
+        return False
 
 
 @contextmanager
@@ -72,3 +91,38 @@ def atomic_write(path: str | os.PathLike) -> Iterator[BinaryIO]:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+TEMPORARY_NAME = re.compile(r"\.(?P<name>.+)\.(?P<pid>[0-9]+)\.[0-9a-f]{32}\.tmp")
+"""The names of :func:`atomic_write`'s temporary files: ``.NAME.PID.HEX.tmp`` beside the
+destination ``NAME``, written by process ``PID``."""
+
+
+def _running(pid: int) -> bool:
+    """Whether a process ``pid`` (> 0) exists."""
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, OverflowError):
+        return False
+    except PermissionError:  # another user's
+        pass
+    return True
+
+
+def remove_stale_temporaries(folder: str | os.PathLike, names: re.Pattern) -> list[Path]:
+    """Remove the temporary files :func:`atomic_write` left in ``folder`` for destinations whose
+    name fully matches ``names`` when its process was killed before it could remove them (e.g.
+    SIGKILL): the regular files named :data:`TEMPORARY_NAME` written by a process that is no
+    longer running, or by this one (call it before this process writes there). Returns the paths
+    removed."""
+    folder = Path(folder)
+    removed = []
+    for path in sorted(folder.iterdir()) if folder.is_dir() else []:
+        match = TEMPORARY_NAME.fullmatch(path.name)
+        if not match or not names.fullmatch(match["name"]) or path.is_symlink() or not path.is_file():
+            continue
+        pid = int(match["pid"])
+        if pid == os.getpid() or pid <= 0 or not _running(pid):
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed

@@ -127,11 +127,13 @@ def cmd_generate(args) -> None:
         raise InputError(str(exc)) from None
     trials.write_parquet(out)
     seconds = time.perf_counter() - start
-    payload = {"trials": len(trials), "simulated": report.simulated, "rejected": report.rejected,
-               "drivers": args.drivers, "seed": args.seed, "out": str(out), "seconds": round(seconds, 3)}
-    rejected = ", ".join(f"{k} {v}" for k, v in report.rejected.items())
+    rejected = sum(report.rejected.values())
+    payload = {"trials": len(trials), "simulated": report.simulated, "rejected": rejected,
+               "rejected_by_reason": report.rejected, "drivers": args.drivers, "seed": args.seed, "out": str(out),
+               "seconds": round(seconds, 3)}
+    reasons = ", ".join(f"{k} {v}" for k, v in report.rejected.items())
     _emit(args, payload, f"wrote {len(trials)} valid trials to {out} in {seconds:.1f} s "
-                         f"({report.simulated} simulated; rejected: {rejected})")
+                         f"({report.simulated} simulated; rejected {rejected}: {reasons})")
 
 
 def cmd_import(args) -> None:
@@ -242,6 +244,9 @@ def _model_spec(spec: str, what: str) -> str:
     from .model.checkpoint import SHIPPED_MODELS
 
     path = spec.removeprefix("authors:") if spec.startswith("authors:") else spec
+    if not path:
+        raise InputError(f"{what} {spec!r}: empty path (expected a checkpoint path, {', '.join(SHIPPED_MODELS)}, "
+                         f"or authors:PATH to the authors' weights.npz)")
     if spec not in SHIPPED_MODELS and not Path(path).is_file():
         raise InputError(f"{what} {spec}: no such file (expected a checkpoint path, {', '.join(SHIPPED_MODELS)}, "
                          f"or authors:PATH to the authors' weights.npz)")
@@ -304,9 +309,9 @@ def cmd_crossval(args) -> None:
 
 def cmd_mix(args) -> None:
     """A mixture of a model with a companion at a given weight (and of its fold models)."""
-    from .model.checkpoint import load_model, model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
+    from .model.checkpoint import load_companion, model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
     from .model.crossval import out_of_fold_models
-    from .model.mixture import Mixture, conditioned_on
+    from .model.mixture import Mixture, companion_for
 
     if (args.folds is None) != (args.out_folds is None):
         raise InputError("mix: --folds and --out-folds go together (the fold models to mix, and where to write them)")
@@ -317,19 +322,14 @@ def cmd_mix(args) -> None:
     if "mixture" in payload:
         raise InputError(f"--model {path}: is a mixture already (expected one model to mix with --companion)")
     model = model_from_checkpoint(payload, path)
-    companion = load_model(_model_spec(args.companion, "--companion"))
-    if isinstance(companion, Mixture):
-        raise InputError(f"--companion {args.companion}: is a mixture (expected one model)")
-    companion = conditioned_on(companion, model.config.robot_future)
-    folds = out_of_fold_models(args.folds) if args.folds is not None else []
+    folds = out_of_fold_models(args.folds, mixtures=False) if args.folds is not None else []
+    mixed_with = [(f"--model {args.model}", model), *((f"a fold model in {args.folds}", m) for m, _ in folds)]
+    companion = load_companion(_model_spec(args.companion, "--companion"), mixed_with)
     recipe = {"companion": args.companion, "weight": args.weight, "person_weight": args.person_weight}
     person = None if args.person_weight is None else [args.person_weight, 1.0 - args.person_weight]
 
     def mixed(m):
-        try:
-            return Mixture([m, companion], [args.weight, 1.0 - args.weight], person)
-        except ValueError as exc:
-            raise InputError(f"--companion {args.companion}: {exc}") from None
+        return Mixture([m, companion_for(m, companion)], [args.weight, 1.0 - args.weight], person)
 
     save_checkpoint(out, mixed(model), **{**payload, "mixture_recipe": recipe})  # the model's own fields replaced
     for k, (fold_model, held) in enumerate(folds):
@@ -343,7 +343,7 @@ def cmd_mix(args) -> None:
 def cmd_calibrate(args) -> None:
     from .data.trials import load_trials
     from .model.calibrate import calibrate, calibrated, scale_of
-    from .model.checkpoint import load_model, model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
+    from .model.checkpoint import load_checkpoint, load_companion, model_path, save_checkpoint
     from .model.crossval import out_of_fold_models
 
     if len(args.model) != len(args.folds):
@@ -352,24 +352,29 @@ def cmd_calibrate(args) -> None:
     out = check_output_file(args.out, "--out")
     out_folds = check_output_folder(args.out_folds, "--out-folds") if args.out_folds is not None else None
     paths = [model_path(m) for m in args.model]
-    payloads = [read_checkpoint(path) for path in paths]  # a bad --model fails before the long grid
-    for path, payload in zip(paths, payloads):
+    loaded = [load_checkpoint(path) for path in paths]  # a bad --model fails before the long grid
+    for path, (_, payload) in zip(paths, loaded):
         if "mixture" in payload:
             raise InputError(f"--model {path}: is a mixture, already calibrated (expected the model trained on every fold "
                              f"by the recipe of its --folds)")
-    companion = load_model(_model_spec(args.companion, "--companion")) if args.companion else None
+    scored = [(f"--model {m}", model) for m, (model, _) in zip(args.model, loaded)]  # every model the grid scores
     for folder in args.folds:
-        out_of_fold_models(folder)
+        folders = [Path(folder)]
         if args.nested:
-            out_of_fold_models(Path(folder) / "nested")
+            nested = Path(folder) / "nested"
+            inner = len(out_of_fold_models(nested, mixtures=False))
+            folders += [nested, *(nested / f"fold_{k + 1}" for k in range(inner))]
+        scored += [(f"a fold model in {f}", m) for f in folders for m, _ in out_of_fold_models(f, mixtures=False)]
+    companion = (load_companion(_model_spec(args.companion, "--companion"), scored) if args.companion is not None
+                 else None)
     trials = load_trials(args.data)
     result = calibrate(trials, args.folds, args.temperatures, args.scales, samples=args.samples, seed=args.seed,
                        log=_log(args), nested=args.nested, workers=args.workers, companion=companion)
     summary = result.summary() | ({"companion": args.companion} if companion is not None else {})
     candidate, temperature, scale = summary["candidate"], summary["latent_temperature"], scale_of(summary)
     weight = summary["mixture_weight"]
-    path, payload = paths[candidate], payloads[candidate]
-    model = calibrated(model_from_checkpoint(payload, path), temperature, scale, companion, weight)
+    model, payload = loaded[candidate]
+    model = calibrated(model, temperature, scale, companion, weight)
     kept = {k: v for k, v in payload.items() if k not in ("format", "version", "config", "state_dict", "mixture")}
     save_checkpoint(out, model, **{**kept, "calibration": summary})
     if out_folds is not None:
@@ -477,30 +482,40 @@ def cmd_bench(args) -> None:
     import torch
 
     from .model.checkpoint import choose_device, load_model
-    from .model.predictor import HumanPredictor, cpu_matrix_features
-    from .planning.candidates import Action
+    from .model.predictor import MAX_PLAN_FUTURES, HumanPredictor, cpu_matrix_features
+    from .planning.candidates import N_CANDIDATES, Action
     from .planning.costs import PaperCost
     from .planning.planner import Budget, Planner, example_history
     from .scenario import LANE_CENTRE_Y
 
+    budget = Budget(args.first_stage_samples, args.finalists, args.second_stage_samples)
+    if budget.futures > MAX_PLAN_FUTURES:
+        raise InputError(f"--first-stage-samples {budget.first_stage_samples}, --finalists {budget.finalists} and "
+                         f"--second-stage-samples {budget.second_stage_samples} sample {budget.futures} human futures "
+                         f"a plan ({N_CANDIDATES} candidates × first stage + finalists × second stage; expected at most "
+                         f"{MAX_PLAN_FUTURES})")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     device = choose_device(args.device)
     human_model = HumanPredictor(load_model(args.model, device), precision=args.precision)
-    planner = Planner(human_model, Budget(args.first_stage_samples, args.finalists, args.second_stage_samples))
+    planner = Planner(human_model, budget)
     history, first = example_history(), Action.of(0.0, "right").index
     cost = PaperCost(goal_y=LANE_CENTRE_Y["left"])
     planner.plan(history, first, cost, deadline=args.deadline)  # warm-up: allocations, measured speed
-    plans = [planner.plan(history, first, cost, deadline=args.deadline) for _ in range(args.repeats)]
-    seconds = [p.seconds for p in plans]
-    payload = {"futures": min(p.futures for p in plans), "seconds": statistics.median(seconds),
-               "seconds_all": [round(s, 4) for s in seconds], "candidates": len(plans[0].candidates),
-               "first_stage_samples": plans[0].first_stage_samples, "shortlist_samples": plans[0].shortlist_samples,
-               "finalists": len(plans[0].finalists),
-               "second_stage_samples": plans[0].second_stage_samples, "deadline": args.deadline,
+    opening, seconds, futures = None, [], []
+    for _ in range(args.repeats):  # a plan holds its candidates and futures (MBs): keep the first and the last
+        plan = planner.plan(history, first, cost, deadline=args.deadline)
+        opening = plan if opening is None else opening
+        seconds.append(plan.seconds)
+        futures.append(plan.futures)
+    payload = {"futures": min(futures), "seconds": statistics.median(seconds),
+               "seconds_all": [round(s, 4) for s in seconds], "candidates": len(opening.candidates),
+               "first_stage_samples": opening.first_stage_samples, "shortlist_samples": opening.shortlist_samples,
+               "finalists": len(opening.finalists),
+               "second_stage_samples": opening.second_stage_samples, "deadline": args.deadline,
                "device": str(device), "threads": torch.get_num_threads(), "model": args.model,
                "precision": human_model.precision,
-               "timings": {k: round(v, 4) for k, v in plans[-1].timings.items()}, "cpu": cpu_matrix_features()}
+               "timings": {k: round(v, 4) for k, v in plan.timings.items()}, "cpu": cpu_matrix_features()}
     _emit(args, payload, f"plan: {payload['futures']} human futures for {payload['candidates']} candidates in "
                          f"{payload['seconds']:.3f} s (median of {args.repeats}; {device}, {payload['threads']} threads)")
 
@@ -527,8 +542,22 @@ def cmd_realism(args) -> None:
 
     if (args.human is None) == (args.folds is None):
         raise InputError(f"realism needs one of --human SPEC ({HUMAN_SPECS}) or --folds DIR (out-of-fold models)")
-    trials = load_trials(args.data)
     device = choose_device(args.device)
+    if args.human is not None:
+        made = {}
+
+        def agent(other: str):
+            """The --human agent facing ``other``, made once."""
+            if other not in made:
+                try:
+                    made[other] = human_agent(args.human, device, other=other)
+                except InputError as exc:
+                    raise InputError(f"--human {args.human}: {exc}") from None
+            return made[other]
+
+        agent("robot")  # a bad --human fails before the data is read
+        agents = lambda ids, other: [(ids, agent(other))]  # noqa: E731
+    trials = load_trials(args.data)
     if args.folds is not None:
         from .model.crossval import out_of_fold_models
 
@@ -539,10 +568,10 @@ def cmd_realism(args) -> None:
             raise InputError(f"--folds {args.folds}: trial {missing[0]} of {args.data} is held out by no fold (expected "
                              f"the folds of `trafficweaving crossval --out` on the same data)")
         agents = lambda ids, other: [(np.asarray(h), ModelDriver(m.to(device), other=other)) for m, h in folds]  # noqa: E731
-    else:
-        agents = lambda ids, other: [(ids, human_agent(args.human, device, other=other))]  # noqa: E731
     try:
         result = realism(trials, agents, rollouts=args.rollouts, seed=args.seed, progress=not args.json)
+    except InputError:
+        raise
     except ValueError as exc:
         raise InputError(f"{args.data}: {exc}") from None
     summary = {"human": args.human or f"out-of-fold:{args.folds}", "data": str(args.data), "seed": args.seed,
@@ -556,22 +585,30 @@ def cmd_realism(args) -> None:
 
 def cmd_plot_episode(args) -> None:
     """The paper's Fig. 6 of one trial or episode, and optionally its animation."""
+    from .atomic import same_file
     from .data.trials import load_trials
-    from .viz.episode_figures import animate_episode, plot_episode
+    from .viz.episode_figures import MAX_ANIMATION_STEPS, animate_episode, plot_episode
 
     out = check_output_file(args.out, "--out")
     gif = check_output_file(args.gif, "--gif") if args.gif is not None else None
+    if gif is not None and same_file(out, gif):
+        raise InputError(f"--gif {gif}: the same file as --out {out} (expected another path: the animation would "
+                         f"replace the figure)")
     trials = load_trials(args.data)
     if args.trial >= len(trials):
         raise InputError(f"--trial {args.trial}: {args.data} has {len(trials)} trials (expected 0..{len(trials) - 1})")
-    payload = {"figure": str(plot_episode(trials, args.trial, out))}
+    length = int(trials.lengths[args.trial])
+    plans = None
     if gif is not None:
-        plans = None
+        if length > MAX_ANIMATION_STEPS:
+            raise InputError(f"--gif: trial {args.trial} of {args.data} has {length} steps (expected at most "
+                             f"{MAX_ANIMATION_STEPS}, one frame each)")
         if "episode" in trials.metadata:
             from .sim.episodes import rerun_with_plans
 
             plans = rerun_with_plans(trials)
-        length = int(trials.lengths[args.trial])
+    payload = {"figure": str(plot_episode(trials, args.trial, out))}
+    if gif is not None:
         roles = tuple(str(r) for r in trials.roles[args.trial])
         payload["animation"] = str(animate_episode(trials.states[args.trial, :, :length], roles, gif, plans or [],
                                                    title=str(trials.sources[args.trial])))
@@ -587,7 +624,8 @@ def cmd_drive(args) -> None:
 
     config = DriveConfig(mode=args.mode, countdown_s=args.countdown, model=_model_spec(args.model, "--model"),
                          deadline=args.deadline, threads=args.threads)
-    serve(config, args.host, args.port, check_output_folder(args.out, "--out"), open_browser=not args.no_browser)
+    serve(config, args.host, args.port, check_output_folder(args.out, "--out"), allowed_hosts=args.allowed_host,
+          open_browser=not args.no_browser)
 
 
 def cmd_demo(args) -> None:
@@ -626,22 +664,29 @@ def _add_schedule_options(p, steps: int) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from .model.calibrate import MIX_WEIGHTS, SCALES, TEMPERATURES
-    from .model.predictor import PRECISIONS
+    from .model.crossval import MAX_FOLDS
+    from .model.evaluate import MAX_NLL_SAMPLES
+    from .model.metrics import MAX_SAMPLES
+    from .model.predictor import MAX_PLAN_FUTURES, PRECISIONS
     from .planning.candidates import N_CANDIDATES
+    from .sim.batch import MAX_EPISODES, RAY_ADDRESS_FORMS, RAY_CONNECT_TIMEOUT_S, WORKERS_PER_CPU
+    from .sim.generate import MAX_PAIRS, MAX_TRIALS
     from .sim.humans import HUMAN_SPECS
-    from .sim.realism import ROLLOUTS
+    from .sim.realism import MAX_ROLLOUTS, ROLLOUT_BYTES, ROLLOUTS
     from .web.options import COUNTDOWN_S, MODES, PLAN_DEADLINE_S
 
     parser = _Parser(prog="trafficweaving", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("generate", help="generate synthetic human–human trials")
-    p.add_argument("--trials", type=POSITIVE, default=STUDY_TRIALS,
-                   help=f"number of valid trials (default {STUDY_TRIALS}, as the paper)")
+    p.add_argument("--trials", type=_int_at_least(1, MAX_TRIALS), default=STUDY_TRIALS,
+                   help=f"number of valid trials, at most {MAX_TRIALS} (default {STUDY_TRIALS}, as the paper)")
     p.add_argument("--seed", type=SEED, default=0)
-    p.add_argument("--pairs", type=POSITIVE, default=19, help="pairs of simulated drivers (default 19, as the study)")
+    p.add_argument("--pairs", type=_int_at_least(1, MAX_PAIRS), default=19,
+                   help=f"pairs of simulated drivers, at most {MAX_PAIRS} (default 19, as the study)")
     p.add_argument("--drivers", default="synthetic", help="who drives both cars: synthetic (the simulated drivers, "
-                   "default) or any human agent, e.g. model:driver (self-play; docs/realism.md)")
+                   "default) or any human agent, e.g. model:driver (self-play; docs/realism.md); replay:FILE "
+                   "replays each recording from its own start")
     p.add_argument("--device", default="cpu", help="a model driver's device: cpu (default), auto, cuda, cuda:N")
     p.add_argument("--out", required=True, help="output Parquet file")
     p.add_argument("--json", action="store_true")
@@ -679,9 +724,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", help="continue the run saved in this training checkpoint")
     p.set_defaults(func=cmd_train)
 
+    processes = WORKERS_PER_CPU * (os.cpu_count() or 1)  # of a local process pool: each holds the data and models
     p = sub.add_parser("crossval", help="k-fold cross-validation by trial (choosing the number of steps by the folds)")
     p.add_argument("--data", required=True, help="Parquet dataset")
-    p.add_argument("--folds", type=_int_at_least(2), default=5)
+    p.add_argument("--folds", type=_int_at_least(2, MAX_FOLDS), default=5, help=f"folds, 2..{MAX_FOLDS} (default 5)")
     p.add_argument("--reference", help="a model scored on the same folds (checkpoint, default, or authors:PATH)")
     p.add_argument("--out", help="folder for each fold's model at the chosen steps (fold_K.pt, with its held-out trials)")
     p.add_argument("--beat-reference", action="store_true",
@@ -689,7 +735,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nested", action="store_true",
                    help="also train without each pair of folds, so that each fold's steps are chosen by an inner "
                         "cross-validation without it (the nested estimate); --out then also gets nested/ for calibrate --nested")
-    p.add_argument("--workers", type=POSITIVE, default=1, help="fits run in this many processes (default 1)")
+    p.add_argument("--workers", type=_int_at_least(1, processes), default=1,
+                   help=f"fits run in this many processes, 1..{processes} ({WORKERS_PER_CPU} per CPU core here; "
+                        f"default 1)")
     _add_schedule_options(p, steps=1000)
     p.set_defaults(func=cmd_crossval)
 
@@ -701,16 +749,20 @@ def build_parser() -> argparse.ArgumentParser:
                    "every fold; one per --folds, in the same order")
     p.add_argument("--nested", action="store_true", help="also report the nested estimate: each fold's candidate and "
                    "calibration chosen on its inner folds (needs folders written by `crossval --nested --out`)")
-    p.add_argument("--workers", type=POSITIVE, default=1, help="the grid is scored in this many processes (default 1)")
+    p.add_argument("--workers", type=_int_at_least(1, processes), default=1,
+                   help=f"the grid is scored in this many processes, 1..{processes} ({WORKERS_PER_CPU} per CPU core here; "
+                        f"default 1)")
     p.add_argument("--temperatures", type=_floats_in(0, 100), default=TEMPERATURES,
                    help=f"latent temperatures of the grid, comma-separated (default {','.join(f'{v:g}' for v in TEMPERATURES)})")
     p.add_argument("--scales", type=_floats_in(0, 100), default=SCALES,
                    help=f"output scales of the grid, comma-separated (default {','.join(f'{v:g}' for v in SCALES)})")
     p.add_argument("--companion", help="a model not trained on --data (e.g. authors:PATH) to mix the calibrated model with, "
-                   "the weight chosen out-of-fold among " + ", ".join(f"{w:g}" for w in MIX_WEIGHTS) + " and 1")
+                   "the weight chosen out-of-fold among " + ", ".join(f"{w:g}" for w in MIX_WEIGHTS) + " and 1; one model "
+                   "(not a mixture) with --model's standardisation")
     p.add_argument("--out", required=True, help="the calibrated checkpoint")
     p.add_argument("--out-folds", help="also write the calibrated fold models here (for out-of-fold reports)")
-    p.add_argument("--samples", type=_int_at_least(2), default=100, help="sampled futures per instance for the coverage")
+    p.add_argument("--samples", type=_int_at_least(2, MAX_SAMPLES), default=100,
+                   help=f"sampled futures per instance for the coverage, 2..{MAX_SAMPLES}")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_calibrate)
@@ -730,10 +782,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="NLL, coverage and displacement errors of a human model on every human agent of a dataset")
     p.add_argument("--model", default="default", help="checkpoint path, default, or authors:PATH")
     p.add_argument("--data", required=True, help="Parquet dataset")
-    p.add_argument("--samples", type=POSITIVE, default=50, help="latent samples of the sampled NLL estimators")
-    p.add_argument("--coverage-samples", type=_int_at_least(2), default=100,
-                   help="sampled futures per instance for the position coverage")
-    p.add_argument("--ade-samples", type=POSITIVE, default=20, help="sampled futures per instance for minADE/minFDE")
+    p.add_argument("--samples", type=_int_at_least(1, MAX_NLL_SAMPLES), default=50,
+                   help=f"latent samples of the sampled NLL estimators, 1..{MAX_NLL_SAMPLES}")
+    p.add_argument("--coverage-samples", type=_int_at_least(2, MAX_SAMPLES), default=100,
+                   help=f"sampled futures per instance for the position coverage, 2..{MAX_SAMPLES}")
+    p.add_argument("--ade-samples", type=_int_at_least(1, MAX_SAMPLES), default=20,
+                   help=f"sampled futures per instance for minADE/minFDE, 1..{MAX_SAMPLES}")
     p.add_argument("--max-sampled-instances", type=NON_NEGATIVE, default=5000,
                    help="sample futures for at most this many instances (chosen at random with --seed; default 5000)")
     p.add_argument("--per-instance", metavar="FILE.parquet", help="also write every instance's values to this Parquet file")
@@ -747,7 +801,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="Parquet dataset")
     p.add_argument("--at", action="append", required=True, metavar="TRIAL:T[:AGENT]",
                    help="trial index and present step (repeat for more panels); agent defaults to the first human")
-    p.add_argument("--samples", type=POSITIVE, default=50)
+    p.add_argument("--samples", type=_int_at_least(1, MAX_SAMPLES), default=50,
+                   help=f"sampled futures per panel, 1..{MAX_SAMPLES} (default 50)")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--device", default="auto")
     p.add_argument("--out", required=True, help="output PNG")
@@ -759,9 +814,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default="default")
     p.add_argument("--repeats", type=POSITIVE, default=3)
     p.add_argument("--deadline", type=_float_in(0, 3600), help="real-time mode: return within this many seconds")
-    p.add_argument("--first-stage-samples", type=POSITIVE, default=16)
+    p.add_argument("--first-stage-samples", type=_int_at_least(1, MAX_PLAN_FUTURES // N_CANDIDATES), default=16,
+                   help=f"human futures per candidate, 1..{MAX_PLAN_FUTURES // N_CANDIDATES} (default 16)")
     p.add_argument("--finalists", type=_int_at_least(1, N_CANDIDATES), default=32)
-    p.add_argument("--second-stage-samples", type=POSITIVE, default=1024)
+    p.add_argument("--second-stage-samples", type=_int_at_least(1, MAX_PLAN_FUTURES), default=1024,
+                   help=f"human futures per finalist (default 1024); a plan samples at most {MAX_PLAN_FUTURES} in all "
+                        f"({N_CANDIDATES} × first stage + finalists × second stage)")
     p.add_argument("--precision", choices=PRECISIONS, default="auto",
                    help="decoder matrix multiplies; auto: bfloat16 on CPUs with native bfloat16, else float32")
     p.add_argument("--threads", type=_int_at_least(1, os.cpu_count() or 1),
@@ -771,7 +829,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("simulate", help="closed-loop episodes of a robot against a human, with metrics and CIs")
-    p.add_argument("--episodes", type=POSITIVE, required=True, help="episodes 0..N-1 (each from --seed and its index)")
+    p.add_argument("--episodes", type=_int_at_least(1, MAX_EPISODES), required=True,
+                   help=f"episodes 0..N-1 (each from --seed and its index), N in 1..{MAX_EPISODES}")
     p.add_argument("--robot", default="planner", help="planner (default: within nuPlan's comfort limits until time "
                                                       "runs short, the human beside brakes along with it or the "
                                                       "human ahead brakes hard, then decisive; makes room beside "
@@ -789,10 +848,13 @@ def build_parser() -> argparse.ArgumentParser:
                              f"the replanning period)")
     timing.add_argument("--full-budget", dest="deadline", action="store_const", const=None,
                         help="plan with the paper's fixed sample counts however long it takes (~1-2 s a plan on a CPU)")
-    p.add_argument("--workers", type=POSITIVE, default=1, help="episodes run at once (default 1: in this process)")
+    p.add_argument("--workers", type=POSITIVE, default=1, help=f"episodes run at once (default 1: in this process), "
+                   f"at most {WORKERS_PER_CPU} per CPU core here ({WORKERS_PER_CPU * (os.cpu_count() or 1)}), or "
+                   f"{MAX_EPISODES} on a Ray cluster")
     p.add_argument("--engine", choices=("local", "ray"), default="local",
                    help="local: a process pool; ray: Ray tasks (pip install 'trafficweaving[ray]')")
-    p.add_argument("--address", help="with --engine ray: the Ray cluster to join (default: a new local instance)")
+    p.add_argument("--address", help=f"with --engine ray: the Ray cluster to join, {RAY_ADDRESS_FORMS}, its head "
+                   f"answering within {RAY_CONNECT_TIMEOUT_S:g} s (default: a new local instance)")
     p.add_argument("--device", default="cpu", help="the models' device: cpu (default), auto, cuda, cuda:N")
     p.add_argument("--precision", choices=PRECISIONS, default="auto", help="the planner's sampling precision (default "
                    "auto: bfloat16 where the CPU has it; int8: fused and compiled, docs/planner.md)")
@@ -806,7 +868,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--folds", metavar="DIR", help="instead of --human: the fold models of `crossval --out DIR` on the "
                    "same data, each driving the trials it did not train on (out-of-fold)")
     p.add_argument("--data", required=True, help="recorded trials (Parquet); every car labelled human is rolled out")
-    p.add_argument("--rollouts", type=_int_at_least(2), default=ROLLOUTS, help=f"rollouts per recorded human (default {ROLLOUTS})")
+    p.add_argument("--rollouts", type=_int_at_least(2, MAX_ROLLOUTS), default=ROLLOUTS,
+                   help=f"rollouts per recorded human, 2..{MAX_ROLLOUTS} (default {ROLLOUTS}; each holds about "
+                        f"{ROLLOUT_BYTES // 1000} kB while they run)")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--device", default="cpu", help="a model agent's device: cpu (default), auto, cuda, cuda:N")
     p.add_argument("--json", action="store_true")
@@ -826,6 +890,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=_int_at_least(0, 65535), default=8000, help="TCP port (default 8000; 0: any free port)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only; "
                    "another address needs the printed link's key and each room's token)")
+    p.add_argument("--allowed-host", action="append", default=[], metavar="NAME[:PORT]",
+                   help="another name pages may use for this server (repeatable; default port: --port); requests "
+                        "for any other host than the served address are refused")
     p.add_argument("--no-browser", action="store_true", help="do not open the page in the browser")
     p.add_argument("--mode", choices=MODES, default="robot",
                    help="robot: a person against the planner; human-human: rooms of two browsers, one person each")
@@ -842,7 +909,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="the main job, end to end, on the shipped defaults")
     p.add_argument("--out", default="out", help="output folder (default: out)")
-    p.add_argument("--trials", type=POSITIVE, default=STUDY_TRIALS)
+    p.add_argument("--trials", type=_int_at_least(1, MAX_TRIALS), default=STUDY_TRIALS,
+                   help=f"synthetic trials to generate, at most {MAX_TRIALS} (default {STUDY_TRIALS}, as the paper)")
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--hitl", help="folder of the authors' .jld recordings (default: ../shared/reference/hitl if present)")
     p.set_defaults(func=cmd_demo, json=False)
@@ -864,14 +932,15 @@ def _die_by_signal(signum: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run one command. Bad input: one line on stderr and status 2. SIGTERM and Ctrl-C (SIGINT):
     temporary files are removed, a one-line notice is printed, and the process ends by that
-    signal (status 143 and 130 in a shell)."""
-    try:
-        args = build_parser().parse_args(argv)
-    except SystemExit as exc:  # --help (0) or a malformed option (2, one line printed)
-        return int(exc.code or 0)
+    signal (status 143 and 130 in a shell); also while the parser's imports (PyTorch) load."""
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
-    where = f"trafficweaving {args.command}"
+    where = "trafficweaving"
     try:
+        try:
+            args = build_parser().parse_args(argv)
+        except SystemExit as exc:  # --help (0) or a malformed option (2, one line printed)
+            return int(exc.code or 0)
+        where = f"trafficweaving {args.command}"
         args.func(args)
     except InputError as exc:
         print(f"{where}: error: {exc}", file=sys.stderr)

@@ -266,7 +266,8 @@ def load_trials(path: str | os.PathLike) -> TrialSet:
     """
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: {'is a folder' if path.is_dir() else 'no such file'} (expected a trafficweaving Parquet dataset)")
+        what = "is a folder" if path.is_dir() else "not a regular file" if path.exists() else "no such file"
+        raise InputError(f"{path}: {what} (expected a trafficweaving Parquet dataset)")
     try:
         with pq.ParquetFile(path) as parquet:  # a plain file reader: keeps duplicated column names for the check
             table = parquet.read()

@@ -6,8 +6,11 @@ Description
     difference −2/0/+2 m/s, crossover time 1/2/3 s, which car starts in which lane; paper §V-A).
     Both must swap lanes before the cutoff; who passes whom is for them to settle. The human is
     any human agent of :func:`trafficweaving.sim.humans.human_agent` (default: the simulated
-    drivers). The world steps at 0.1 s (trapezoid integration); one environment step is one
-    decision window of 0.3 s (3 world steps), the planner's replanning period (paper §V-C).
+    drivers). A replayed human (``replay:FILE[#K]``) drives its recorded path instead: the episode
+    starts from the recording's start, the robot in the recording's other car, the trial ``K`` or
+    drawn uniformly at reset (:func:`trafficweaving.sim.humans.replay_start`). The world steps at
+    0.1 s (trapezoid integration); one environment step is one decision window of 0.3 s (3 world
+    steps), the planner's replanning period (paper §V-C).
 
 Action space
     ``action_type="discrete"``: ``Discrete(8)``, the planner's window actions (longitudinal
@@ -40,7 +43,8 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from ..data.trials import PLAUSIBLE_RANGES
+from ..data.trials import PLAUSIBLE_RANGES, _short
+from ..errors import InputError
 from ..planning.candidates import ACCELERATIONS, N_ACTIONS, STEPS_PER_WINDOW, rollout
 from ..planning.costs import PaperCost
 from ..scenario import (
@@ -56,7 +60,7 @@ from ..scenario import (
     study_initial_conditions,
 )
 from ..sim.drivers import MAX_LATERAL_ACCEL
-from ..sim.humans import human_agent
+from ..sim.humans import human_agent, replay_start
 from ..sim.world import World
 
 ROBOT, HUMAN = 0, 1
@@ -65,17 +69,20 @@ ROBOT, HUMAN = 0, 1
 
 class TrafficWeavingEnv(gym.Env):
     """See the module docstring. ``human``: a human agent spec (``synthetic``, ``model:SPEC``,
-    ``replay:FILE``); ``action_type``: ``discrete`` or ``continuous``; ``render_mode``: None or
-    ``rgb_array`` (the road and both cars, robot blue, human red)."""
+    ``replay:FILE[#K]``, :data:`~trafficweaving.sim.humans.HUMAN_SPECS`); ``action_type``:
+    ``discrete`` or ``continuous``; ``render_mode``: None or ``rgb_array`` (the road and both cars,
+    robot blue, human red). :class:`~trafficweaving.errors.InputError` (a ValueError) with one line
+    for any other value."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": round(1 / (STEPS_PER_WINDOW * DT))}
 
     def __init__(self, human: str = "synthetic", action_type: str = "discrete", render_mode: str | None = None):
-        if action_type not in ("discrete", "continuous"):
-            raise ValueError(f"action_type must be 'discrete' or 'continuous', got {action_type!r}")
-        if render_mode not in (None, *self.metadata["render_modes"]):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if not isinstance(action_type, str) or action_type not in ("discrete", "continuous"):
+            raise InputError(f"action_type must be 'discrete' or 'continuous', got {_short(action_type)}")
+        if render_mode is not None and not (isinstance(render_mode, str) and render_mode in self.metadata["render_modes"]):
+            raise InputError(f"render_mode must be None or 'rgb_array', got {_short(render_mode)}")
         self.human = human_agent(human)
+        self.driver = self.human  # the human agent of the present episode (a replay bound to its trial)
         self.action_type, self.render_mode = action_type, render_mode
         if action_type == "discrete":
             self.action_space = spaces.Discrete(N_ACTIONS)
@@ -97,12 +104,17 @@ class TrafficWeavingEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        conditions = study_initial_conditions()
-        start = conditions[int(self.np_random.integers(len(conditions)))].start_states()
-        if self.np_random.random() < 0.5:  # the robot drives car A or car B of the condition
-            start = start[::-1].copy()
+        replay = replay_start((None, self.human), rng=self.np_random)  # cars ROBOT, HUMAN
+        if replay is not None:
+            start, self.driver = replay.start[0], replay.cars[HUMAN]
+        else:
+            conditions = study_initial_conditions()
+            start = conditions[int(self.np_random.integers(len(conditions)))].start_states()
+            if self.np_random.random() < 0.5:  # the robot drives car A or car B of the condition
+                start = start[::-1].copy()
+            self.driver = self.human
         self.world = World(start[None])
-        self.human.reset(self.np_random, self.world.states[:, :, 0], HUMAN)
+        self.driver.reset(self.np_random, self.world.states[:, :, 0], HUMAN)
         self.start_y = start[ROBOT, 1]
         goal = next(lane for lane in LANES if lane != lane_of(self.start_y))
         self.cost = PaperCost(goal_y=LANE_CENTRE_Y[goal])
@@ -129,7 +141,7 @@ class TrafficWeavingEnv(gym.Env):
         for k in range(STEPS_PER_WINDOW):
             if self.world.done:
                 break
-            human = self.human.act(self.world.history)[0]
+            human = self.driver.act(self.world.history)[0]
             self.world.step(np.stack([robot[k], human])[None])
         now = self.world.states[0, :, first: self.world.t + 1]  # [2, steps, 6]: the window's steps
         window = torch.as_tensor(now)

@@ -48,7 +48,7 @@ from .cvae import CVAE
 from .exemplars import build_exemplars
 from .evaluate import evaluate
 from .metrics import InstanceMetrics, evaluate_instances
-from .mixture import Mixture
+from .mixture import Mixture, companion_for
 
 TEMPERATURES = (1.0, 2.0, 5.0)
 SCALES = (1.0, 1.2, 1.4, 1.7, 2.0, 2.5, 3.0)
@@ -110,9 +110,10 @@ def _direction_scale(rows: list[dict], direction: str) -> float:
 def calibrated(model: CVAE, temperature: float, scale: tuple[float, float], companion: CVAE | None = None,
                weight: float = 1.0) -> CVAE | Mixture:
     """A copy of ``model`` calibrated with ``temperature`` and ``scale`` (x, y), mixed with
-    ``companion`` at ``weight`` when that is below 1."""
+    ``companion`` (conditioned like it, :func:`~.mixture.companion_for`) at ``weight`` when that is
+    below 1."""
     model = copy.deepcopy(model).set_calibration(temperature, scale)
-    return model if weight >= 1.0 else Mixture([model, companion], [weight, 1.0 - weight])
+    return model if weight >= 1.0 else Mixture([model, companion_for(model, companion)], [weight, 1.0 - weight])
 
 
 def _scored(pairs: list, trials: TrialSet, temperature: float, scale: tuple[float, float], samples: int,
@@ -224,8 +225,8 @@ def calibrate(trials: TrialSet, folds: str | list, temperatures=TEMPERATURES, sc
     folders = [folds] if isinstance(folds, (str, Path)) else list(folds)
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) if workers > 1 else None
     try:
-        scores, grid, chosen = _search([out_of_fold_models(f) for f in folders], trials, temperatures, scales, samples,
-                                       seed, log, pool, companion, weights)
+        scores, grid, chosen = _search([out_of_fold_models(f, mixtures=False) for f in folders], trials, temperatures,
+                                       scales, samples, seed, log, pool, companion, weights)
         estimate = (calibrate_nested(trials, folders, temperatures, scales, samples, seed, log, pool, companion, weights)
                     if nested else None)
     finally:
@@ -244,11 +245,11 @@ def calibrate_nested(trials: TrialSet, folders: list, temperatures=TEMPERATURES,
     (``FOLDER/nested/fold_K.pt``) and scored on fold K. No choice involves fold K's scores.
     Returns ``nll_exact``, ``nll_exact_by_direction``, ``coverage_90``, ``min_ade_m`` over every
     fold's instances, and ``folds`` (per fold: its choice and scores)."""
-    outer = [[model for model, _ in out_of_fold_models(Path(f) / "nested")] for f in folders]
+    outer = [[model for model, _ in out_of_fold_models(Path(f) / "nested", mixtures=False)] for f in folders]
     held = [h for _, h in out_of_fold_models(Path(folders[0]) / "nested")]
     parts, per_fold = [], []
     for k in range(len(held)):
-        inner = [out_of_fold_models(Path(f) / "nested" / f"fold_{k + 1}") for f in folders]
+        inner = [out_of_fold_models(Path(f) / "nested" / f"fold_{k + 1}", mixtures=False) for f in folders]
         scores, grid, chosen = _search(inner, trials, temperatures, scales, samples, seed, lambda _: None, pool,
                                        companion, weights)
         pick = grid[chosen]

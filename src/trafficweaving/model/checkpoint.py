@@ -1,12 +1,12 @@
 """Model files: saving and loading checkpoints, and resolving ``--model`` specifications.
 
 A checkpoint is a ``torch.save`` dictionary readable with ``weights_only=True`` (no pickled code):
-``format``, ``version`` (5), ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
+``format``, ``version`` (6), ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
 and standardisation buffers), for a :class:`~trafficweaving.model.mixture.Mixture` ``mixture``
-(``weights``, one per component, optionally ``person_weights``, the weights of a driver facing a
-person, and ``components``: the ``config`` and ``state_dict`` of every component after the first,
-which is the file's own model), ``tensor_sha256`` (a SHA-256 of every tensor in the file, see
-:func:`tensor_digest`), ``data_fingerprint``, ``step``, ``history`` (validation NLL by step) and, in
+(``weights``, a float64 tensor with one weight per component, optionally ``person_weights``, the
+weights of a driver facing a person, likewise, and ``components``: the ``config`` and ``state_dict``
+of every component after the first, which is the file's own model), ``tensor_sha256`` (a SHA-256
+of every tensor in the file, see :func:`tensor_digest`), ``data_fingerprint``, ``step``, ``history`` (validation NLL by step) and, in
 training checkpoints, ``train_config``, ``optimizer`` and ``rng`` for resuming.
 
 Loading checks everything a reader later relies on, so that a corrupted or hand-edited file is
@@ -14,7 +14,8 @@ refused with one :class:`InputError` naming it instead of loading silently (``to
 check the zip entries' CRCs, and ``load_state_dict`` casts integer tensors into float weights) or
 failing later with a traceback: the tensors' digest, the config's types and ranges, each tensor's
 dtype, shape and finiteness, positive standard deviations and calibration (docs/model.md,
-docs/calibration.md), and the types of the fields the commands read.
+docs/calibration.md), a mixture's weights (finite, positive, with a finite sum), and the types of
+the fields the commands read.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import hashlib
 import io
 import math
 import re
+import warnings
 from importlib import resources
 from pathlib import Path
 
@@ -33,14 +35,18 @@ from ..atomic import atomic_write
 from ..errors import InputError
 from .cvae import CVAE, ROBOT_FUTURES, CVAEConfig
 from .gmm import HOLD_MIN_SIGMA, LOG_SIGMA_CLIP
-from .mixture import Mixture
+from .mixture import Mixture, companion_for, normalised
 
 FORMAT = "trafficweaving-cvae"
-VERSION = 5
+VERSION = 6
 """2: adds ``tensor_sha256`` (version 1 files, without it, are refused); 3: the output scale no
-longer widens the hold modes; 4: one output scale per direction; 5: mixtures. Older files are read
-with the same density (:func:`upgrade_state`)."""
-READABLE_VERSIONS = (2, 3, 4, 5)
+longer widens the hold modes; 4: one output scale per direction; 5: mixtures; 6: a mixture's
+weights are tensors, inside the SHA-256. Older files are read with the same density
+(:func:`upgrade_state`), except version 5 mixtures (:data:`MIXTURE_VERSION`)."""
+READABLE_VERSIONS = (2, 3, 4, 5, 6)
+MIXTURE_VERSION = 6
+"""The first version whose mixtures are read: version 5 stored a mixture's weights as numbers,
+outside the SHA-256."""
 HASH_FIELD = "tensor_sha256"
 SHIPPED_MODELS = {  # --model name: file in the package (docs/model.md, "The shipped models")
     "default": "default_cvae.pt",  # the authors' real-data model with hold modes, fine-tuned on the 30 real trials
@@ -138,10 +144,10 @@ def save_checkpoint(path: str | Path, model: CVAE | Mixture, **fields) -> None:
     """Write ``model`` and extra ``fields`` (step, history, data_fingerprint, optimizer, ...) atomically."""
     mixture = {}
     if isinstance(model, Mixture):
-        mixture = {"mixture": {"weights": model.weights,
+        mixture = {"mixture": {"weights": torch.tensor(model.weights, dtype=torch.float64),
                                "components": [_model_fields(c) for c in model.components[1:]]}}
         if model.person_weights is not None:
-            mixture["mixture"]["person_weights"] = model.person_weights
+            mixture["mixture"]["person_weights"] = torch.tensor(model.person_weights, dtype=torch.float64)
         model = model.components[0]
     payload = {"format": FORMAT, "version": VERSION, **_model_fields(model), **mixture,
                **{k: v for k, v in fields.items() if k not in RESERVED}}
@@ -313,24 +319,34 @@ def model_from_checkpoint(payload: dict, path: str | Path) -> CVAE | Mixture:
     if "mixture" not in payload:
         return model
     mixture = payload["mixture"]
+    if payload["version"] < MIXTURE_VERSION:
+        raise InputError(f"{path}: a version {payload['version']} mixture, whose weights are outside the checkpoint's "
+                         f"SHA-256 (expected version {MIXTURE_VERSION} or later: mix it again with `trafficweaving mix`)")
     components = mixture.get("components") if isinstance(mixture, dict) else None
-    weights = mixture.get("weights") if isinstance(mixture, dict) else None
-    if not (_is_list_of(components, lambda c: isinstance(c, dict)) and components
-            and _is_list_of(weights, _is_number) and len(weights) == len(components) + 1
-            and all(math.isfinite(w) and w > 0 for w in weights)):
-        raise InputError(f"{path}: checkpoint field mixture is not a mixture (expected weights, positive numbers, one per "
-                         f"component, and components, a config and state_dict for each after the first; {WRITTEN_BY_US})")
-    person = mixture.get("person_weights")
-    if person is not None and not (_is_list_of(person, _is_number) and len(person) == len(weights)
-                                   and all(math.isfinite(w) and w >= 0 for w in person) and sum(person) > 0):
-        raise InputError(f"{path}: checkpoint field mixture.person_weights is not a list of weights (expected one "
-                         f"non-negative number per component, not all zero; {WRITTEN_BY_US})")
+    if not (_is_list_of(components, lambda c: isinstance(c, dict)) and components):
+        raise InputError(f"{path}: checkpoint field mixture is not a mixture (expected weights and components, a "
+                         f"config and state_dict for each component after the first; {WRITTEN_BY_US})")
+    weights = _mixture_weights(mixture, "weights", len(components) + 1, path)
+    person = _mixture_weights(mixture, "person_weights", len(components) + 1, path) if "person_weights" in mixture else None
     others = [_cvae_from_checkpoint({**c, "version": payload["version"]}, f"{path} (mixture component {k + 2})")
               for k, c in enumerate(components)]
     try:
         return Mixture([model, *others], weights, person).eval()
     except ValueError as exc:
         raise InputError(f"{path}: {exc}") from None
+
+
+def _mixture_weights(mixture: dict, key: str, count: int, path: str | Path) -> list[float]:
+    """A mixture's ``weights`` (positive) or ``person_weights`` (non-negative, not all zero), checked:
+    a float64 tensor of ``count``, finite, normalisable (:func:`~.mixture.normalised`)."""
+    value, positive = mixture.get(key), key == "weights"
+    if not (isinstance(value, torch.Tensor) and value.dtype == torch.float64 and value.layout == torch.strided
+            and normalised(value, count, positive) is not None):
+        shown = value.tolist() if isinstance(value, torch.Tensor) and value.numel() <= 16 else value
+        raise InputError(f"{path}: checkpoint field mixture.{key} is {_short(shown)} (expected a float64 tensor of "
+                         f"{count} finite {'positive' if positive else 'non-negative'} weights, "
+                         f"{'' if positive else 'not all zero, '}with a finite sum; {WRITTEN_BY_US})")
+    return value.tolist()
 
 
 def _cvae_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
@@ -384,7 +400,9 @@ def _read(path: str | Path) -> tuple[dict, CVAE | Mixture]:
     if not path.is_file():
         raise InputError(f"{path}: no such file (expected {EXPECTED})")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # e.g. torch's about another pickle protocol: the error below says it
+            warnings.simplefilter("ignore")
+            payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # any unreadable file is the user's input error here
         raise InputError(f"{path}: not a readable checkpoint ({type(exc).__name__}; expected {EXPECTED})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
@@ -419,6 +437,19 @@ def load_checkpoint(path: str | Path) -> tuple[CVAE | Mixture, dict]:
     return model, payload
 
 
+def load_companion(spec: str, models: list[tuple[str, CVAE]]) -> CVAE:
+    """The ``--companion`` of ``mix`` and ``calibrate``: :func:`load_model` of ``spec``, checked
+    before any work against every model it will be mixed with, ``models`` ``[(name in messages,
+    model)]``, by :func:`~.mixture.companion_for`; InputError naming ``--companion`` otherwise."""
+    companion = load_model(spec)
+    for name, model in models:
+        try:
+            companion = companion_for(model, companion)
+        except ValueError as exc:
+            raise InputError(f"--companion {spec}: {exc}, for {name}") from None
+    return companion
+
+
 def shipped_model_path(name: str = "default") -> Path:
     """The file of the model shipped inside the package as ``name`` (:data:`SHIPPED_MODELS`)."""
     return Path(str(resources.files(__package__).joinpath(SHIPPED_MODELS[name])))
@@ -435,13 +466,18 @@ def model_path(spec: str) -> Path:
 
 
 def load_model(spec: str, device: torch.device | str = "cpu") -> CVAE | Mixture:
-    """Resolve a ``--model`` value: a shipped model's name (``default``, ``simulated-real``),
+    """Resolve a ``--model`` value: a shipped model's name (:data:`SHIPPED_MODELS`),
     ``authors:PATH`` or a checkpoint path."""
+    expected = f"expected a checkpoint path, {', '.join(SHIPPED_MODELS)}, or authors:PATH to the authors' weights.npz"
+    if not spec:
+        raise InputError(f"model spec is empty ({expected})")
     if spec in SHIPPED_MODELS:
         model, _ = load_checkpoint(shipped_model_path(spec))
     elif spec.startswith("authors:"):
         from .authors import load_authors_model
 
+        if not spec.removeprefix("authors:"):
+            raise InputError(f"model spec {spec!r} has no path after authors: ({expected})")
         model = load_authors_model(spec.removeprefix("authors:"))
     else:
         model, _ = load_checkpoint(spec)

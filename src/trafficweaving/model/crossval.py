@@ -33,7 +33,15 @@ from .checkpoint import load_checkpoint, load_model, save_checkpoint
 from .cvae import CVAE, CVAEConfig
 from .evaluate import evaluate
 from .exemplars import build_exemplars
+from .mixture import Mixture
 from .train import NO_EXEMPLARS, TrainConfig, initial_model, train
+
+MAX_FOLDS = 100
+"""Most folds: each is a fit of its own (``nested`` adds k(k−1)/2 more), whose held-out scores are
+kept to the end, and with ``out`` its weights at every validation (:data:`MAX_KEPT_MODELS`)."""
+MAX_KEPT_MODELS = 4096
+"""Most model copies a cross-validation with ``out`` keeps until it has chosen the steps, one per
+fit and validation: about 1 MB each at the paper's sizes, so at most about 4 GB."""
 
 
 def fold_assignment(n_trials: int, folds: int, seed: int = 0) -> list[np.ndarray]:
@@ -187,8 +195,15 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
     ``workers`` > 1 runs the fits in that many processes."""
     if beat_reference and reference is None:
         raise InputError("--beat-reference needs a --reference model to beat")
-    if folds < 2 or (nested and folds < 3):
-        raise InputError(f"--folds must be at least {3 if nested else 2}{' for --nested' if nested else ''}, got {folds}")
+    if folds < 2 or (nested and folds < 3) or folds > MAX_FOLDS:
+        raise InputError(f"--folds must be in {3 if nested else 2}..{MAX_FOLDS}{' for --nested' if nested else ''}, "
+                         f"got {folds}")
+    fits = folds + (folds * (folds - 1) // 2 if nested else 0)
+    kept = fits * (tc.steps // tc.validate_every + 2) if out is not None else 0
+    if kept > MAX_KEPT_MODELS:
+        raise InputError(f"--out keeps the weights of {fits} fits at each of up to {tc.steps // tc.validate_every + 2} "
+                         f"validations (--steps {tc.steps}, --validate-every {tc.validate_every}): {kept} model copies "
+                         f"(expected at most {MAX_KEPT_MODELS}, about 1 MB each; validate less often or use fewer folds)")
     if len(trials) < folds:
         raise InputError(f"the data has {len(trials)} trials, fewer than --folds {folds} (expected at least one trial per fold)")
     if len(build_exemplars(trials)) == 0:
@@ -285,14 +300,17 @@ def _save_fold_models(out: Path, result: CrossvalResult, fits: list[_Fit], trial
                                                         "nll_exact": float(result.inner[k, j, pick])})
 
 
-def out_of_fold_models(folder: str | Path) -> list[tuple[CVAE, list[int]]]:
-    """The fold models saved by :func:`crossval` with ``out``: ``[(model, held-out trial ids)]``."""
+def out_of_fold_models(folder: str | Path, mixtures: bool = True) -> list[tuple[CVAE | Mixture, list[int]]]:
+    """The fold models saved by :func:`crossval` with ``out`` (or ``mix --out-folds``, unless not
+    ``mixtures``): ``[(model, held-out trial ids)]``."""
     paths = sorted(Path(folder).glob("fold_*.pt"), key=lambda p: int(p.stem.split("_")[1]))
     if not paths:
         raise InputError(f"{folder}: no fold_K.pt files (expected a folder written by `trafficweaving crossval --out`)")
     models = []
     for path in paths:
         model, payload = load_checkpoint(path)
+        if not mixtures and isinstance(model, Mixture):
+            raise InputError(f"{path}: is a mixture (expected a fold model of `trafficweaving crossval --out`)")
         if "held_out_trials" not in payload:
             raise InputError(f"{path}: no held_out_trials (expected a fold model written by `trafficweaving crossval --out`)")
         models.append((model, list(payload["held_out_trials"])))

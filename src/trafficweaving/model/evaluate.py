@@ -29,6 +29,10 @@ from .cvae import CVAE
 from .exemplars import ExemplarSet, ExemplarTensors
 from .mixture import Mixture
 
+MAX_NLL_SAMPLES = 10_000
+"""Most latent samples of the sampled NLL estimators (``evaluate --samples``): a batch of 512
+instances draws ``[512, samples]`` latent indices and their log weights, 16 bytes each (80 MB)."""
+
 
 @dataclass
 class Evaluation:

@@ -59,6 +59,9 @@ DURING_WITHOUT_END = 10
 """Steps after the crossing that count as ``during`` when the lane change's end is not recorded."""
 ROLLOUTS_PER_BATCH = 25_600
 """Sampled futures decoded together (instances per batch × samples)."""
+MAX_SAMPLES = ROLLOUTS_PER_BATCH
+"""Most futures sampled per instance (``evaluate --coverage-samples`` and ``--ade-samples``,
+``calibrate --samples``, ``predict --samples``): one instance's futures are decoded in one batch."""
 
 
 def horizon_key(step: int) -> str:

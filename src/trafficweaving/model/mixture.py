@@ -38,26 +38,21 @@ class Mixture(nn.Module):
         if len(components) < 2 or len(weights) != len(components):
             raise ValueError(f"a mixture needs at least two components and one weight each, got {len(components)} "
                              f"and {len(weights)}")
-        w = torch.as_tensor(weights, dtype=torch.float64)
-        if not (torch.isfinite(w).all() and (w > 0).all()):
-            raise ValueError(f"mixture weights must be positive and finite, got {w.tolist()}")
-        first = components[0]
-        for c in components[1:]:
-            if c.config.robot_future != first.config.robot_future:
-                raise ValueError(f"mixture components must condition on the same robot future, got "
-                                 f"{first.config.robot_future} and {c.config.robot_future}")
-            if not all(torch.allclose(getattr(c, n).double(), getattr(first, n).double())
-                       for n in ("feature_mean", "feature_std")):
-                raise ValueError("mixture components must share the standardisation (fine-tune one from the other)")
+        for c in components:
+            check_mixable(components[0], c)
+        w = normalised(weights, len(components), positive=True)
+        if w is None:
+            raise ValueError(f"mixture weights must be one per component, positive and finite, with a finite sum, "
+                             f"got {_listed(weights)}")
         self.components = nn.ModuleList(components)
-        self.register_buffer("log_weights", torch.log(w / w.sum()))
+        self.register_buffer("log_weights", torch.log(w))
         self.person_weights = None
         if person_weights is not None:
-            p = torch.as_tensor(person_weights, dtype=torch.float64)
-            if not (len(p) == len(components) and torch.isfinite(p).all() and (p >= 0).all() and p.sum() > 0):
-                raise ValueError(f"mixture weights facing a person must be one per component, non-negative and not all "
-                                 f"zero, got {p.tolist()}")
-            self.person_weights = (p / p.sum()).tolist()
+            p = normalised(person_weights, len(components), positive=False)
+            if p is None:
+                raise ValueError(f"mixture weights facing a person must be one per component, non-negative and finite, "
+                                 f"not all zero, with a finite sum, got {_listed(person_weights)}")
+            self.person_weights = p.tolist()
 
     @property
     def weights(self) -> list[float]:
@@ -112,6 +107,54 @@ class Mixture(nn.Module):
             if len(rows):
                 out[rows] = component.sample_futures(batch, len(rows), generator).to(out.dtype)
         return out
+
+
+def normalised(weights, count: int, positive: bool) -> torch.Tensor | None:
+    """``weights`` (``count`` numbers) divided by their sum as float64 ``[count]``, or None unless
+    they are finite and positive (``positive``) or non-negative and not all zero, with a finite
+    sum: weights that overflow when summed cannot be normalised."""
+    try:
+        w = torch.as_tensor(weights, dtype=torch.float64).detach().cpu()
+    except (TypeError, ValueError, RuntimeError):
+        return None
+    if w.shape != (count,) or not torch.isfinite(w).all() or not ((w > 0).all() if positive else (w >= 0).all()):
+        return None
+    total = w.sum()
+    return w / total if torch.isfinite(total) and total > 0 else None
+
+
+def _listed(weights) -> list:
+    return weights.tolist() if isinstance(weights, torch.Tensor) else list(weights)
+
+
+STANDARDISATION = ("feature_mean", "feature_std", "label_mean", "label_std")
+"""The buffers every component shares: the first component's standardise the inputs and turn
+every component's sampled actions back into m/s²."""
+
+
+def check_mixable(first: CVAE, other: CVAE) -> None:
+    """ValueError unless ``other`` can be a component of a :class:`Mixture` whose first component is
+    ``first``: a model (not a mixture) conditioned on the same robot future, with the same
+    standardisation (:data:`STANDARDISATION`)."""
+    if not isinstance(other, CVAE):
+        raise ValueError(f"mixture components must be models, got a {type(other).__name__}")
+    if other.config.robot_future != first.config.robot_future:
+        raise ValueError(f"mixture components must condition on the same robot future, got "
+                         f"{first.config.robot_future} and {other.config.robot_future}")
+    a, b = ([getattr(m, n).detach().double().cpu() for n in STANDARDISATION] for m in (first, other))
+    if not all(x.shape == y.shape and torch.allclose(x, y) for x, y in zip(a, b)):
+        raise ValueError("mixture components must share the standardisation (fine-tune one from the other)")
+
+
+def companion_for(model: CVAE, companion: CVAE | Mixture) -> CVAE:
+    """``companion`` ready to be mixed with ``model`` (``mix``, ``calibrate --companion``): one
+    model, conditioned like ``model`` (:func:`conditioned_on`), that :func:`check_mixable` accepts;
+    ValueError otherwise."""
+    if isinstance(companion, Mixture):
+        raise ValueError("is a mixture (expected one model)")
+    companion = conditioned_on(companion, model.config.robot_future)
+    check_mixable(model, companion)
+    return companion
 
 
 def facing(model: CVAE | Mixture, other: str) -> CVAE | Mixture:

@@ -25,6 +25,10 @@ from .sampler import rollout
 
 PRECISIONS = ("auto", "float32", "bfloat16", "int8")
 """Choices of :func:`resolve_precision`."""
+MAX_PLAN_FUTURES = 2**21
+"""Most human futures one plan may sample (``bench plan``'s budget options): each holds about 1.7 kB
+while the plan scores them (measured at the paper's budget and 8 times its second stage), so at
+most about 3.6 GB; the paper's plan samples 98,304."""
 
 
 def _cpuinfo() -> tuple[str, set[str]]:

@@ -11,14 +11,16 @@ Output folder ``out``:
 
 A rerun into the same folder reuses every episode whose file loads and was made with the same
 spec (robot, human, seed, model, deadline, budget, device), recomputing only the missing ones (an
-interrupted batch resumes); a file made with another spec is refused. A reused episode's metrics
+interrupted batch resumes, first removing the temporary files of a killed run); a file made with
+another spec, or whose record does not hold what the summary needs, is refused. A reused episode's metrics
 are measured again from its states, and its file rewritten where they changed: a rerun brings the
 logs of an earlier release up to this one's metrics. The summary is rebuilt from
 the files of episodes ``0..episodes-1`` (others in the folder are left alone).
 
 Engines: ``local`` runs the episodes in the calling process (``workers = 1``) or in a pool of
 ``workers`` spawned processes; ``ray`` runs them as Ray tasks, at most ``workers`` at a time, on
-the running Ray instance, the cluster at ``address`` or a new local instance of ``workers`` CPUs.
+the running Ray instance, the cluster at ``address`` (checked to answer within
+:data:`RAY_CONNECT_TIMEOUT_S` first) or a new local instance of ``workers`` CPUs.
 Every worker uses one torch thread, so an episode is bitwise the same on either engine and any
 number of workers (:mod:`.episodes`), unless the planner plans against a wall-clock deadline.
 """
@@ -27,8 +29,12 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import multiprocessing
+import os
+import re
 import signal
+import socket
 import sys
 import threading
 import time
@@ -43,16 +49,37 @@ import torch
 from tqdm import tqdm
 
 from .. import validate
-from ..atomic import atomic_write, check_output_folder
-from ..data.trials import load_trials
+from ..atomic import atomic_write, check_output_file, check_output_folder, remove_stale_temporaries
+from ..data.trials import _short, load_trials
 from ..errors import InputError
 from ..model.checkpoint import choose_device
 from ..planning.planner import Budget
+from ..scenario import LANES
 from .episodes import Episode, EpisodeSpec, run_episode
 from .metrics import aggregate, episode_metrics
 
 ENGINES = ("local", "ray")
 RAY_MISSING = "`--engine ray` needs Ray: pip install 'trafficweaving[ray]'"
+
+MAX_EPISODES = 100_000
+"""Most episodes of one run: it keeps every episode's record (a few kB) in memory for the summary."""
+
+WORKERS_PER_CPU = 4
+"""Most workers per CPU core of this machine, where they run on it (the local engine, a new local
+Ray instance): each is a process holding its own agents."""
+
+RAY_CONNECT_TIMEOUT_S = 5.0
+"""How long a Ray cluster's head may take to answer before its ``address`` is refused."""
+
+RAY_ADDRESS_FORMS = "auto, local, HOST:PORT or ray://HOST:PORT"
+"""The ``address`` forms ``ray.init`` takes (``ray://``: through Ray Client)."""
+
+_RAY_ADDRESS = re.compile(r"(?:ray://)?(?P<host>\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]@]+):(?P<port>[0-9]{1,5})")
+_HTTP2_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+"""An HTTP/2 client's first bytes: the connection preface and an empty SETTINGS frame (type 4)."""
+
+EPISODE_NAME = re.compile(r"episode_(?P<index>[0-9]{6,})\.parquet")
+"""The names of episode logs in ``out/episodes`` (:func:`episode_path`)."""
 
 
 class EpisodeFailed(InputError):
@@ -70,26 +97,123 @@ def episode_path(out: Path, index: int) -> Path:
     return out / "episodes" / f"episode_{index:06d}.parquet"
 
 
+def max_workers(engine: str, address: str | None) -> int:
+    """The most ``workers`` of a run: :data:`WORKERS_PER_CPU` per CPU core of this machine, or on
+    a Ray cluster (an ``address`` other than ``local``) up to :data:`MAX_EPISODES` (one task per
+    episode at most)."""
+    if engine == "ray" and address not in (None, "local"):
+        return MAX_EPISODES
+    return WORKERS_PER_CPU * (os.cpu_count() or 1)
+
+
+def check_ray_address(address) -> str:
+    """``address`` if Ray can join it promptly: ``local`` (a new local instance), ``auto`` (the
+    instance Ray finds running) or a cluster head's ``HOST:PORT`` (``ray://HOST:PORT``: Ray
+    Client), which must answer as a gRPC server (an HTTP/2 handshake) within
+    :data:`RAY_CONNECT_TIMEOUT_S` (``ray.init`` would wait minutes for a head that is not there,
+    printing warnings). InputError naming the address otherwise."""
+    if not isinstance(address, str) or not address:
+        raise InputError(f"address {_short(address)} is not a Ray address (expected {RAY_ADDRESS_FORMS})")
+    if address == "local":
+        return address
+    target = address
+    if address == "auto":
+        try:
+            from ray._private.services import canonicalize_bootstrap_address  # Ray's own lookup; no public API
+        except ImportError:  # another Ray release: ray.init looks it up
+            return address
+        try:
+            target = canonicalize_bootstrap_address("auto")
+        except (ConnectionError, ValueError) as exc:
+            raise InputError(f"address 'auto': {(str(exc).splitlines() or [''])[0]}") from None
+    match = _RAY_ADDRESS.fullmatch(target or "")
+    if match is None or not 1 <= int(match["port"]) <= 65535:
+        raise InputError(f"address {address!r} is not a Ray address (expected {RAY_ADDRESS_FORMS}, PORT in 1..65535)")
+    expected = f"expected a running Ray cluster's head, e.g. from ray start --head, answering within {RAY_CONNECT_TIMEOUT_S:g} s"
+    deadline = time.monotonic() + RAY_CONNECT_TIMEOUT_S
+    reply = b""
+    try:
+        with socket.create_connection((match["host"].strip("[]"), int(match["port"])), RAY_CONNECT_TIMEOUT_S) as conn:
+            conn.sendall(_HTTP2_HELLO)
+            while len(reply) < 9:
+                conn.settimeout(max(deadline - time.monotonic(), 0.01))
+                chunk = conn.recv(9 - len(reply))
+                if not chunk:
+                    break
+                reply += chunk
+    except OSError as exc:  # refused, unreachable, an unknown host, timed out
+        raise InputError(f"address {address!r}: {exc.strerror or str(exc) or type(exc).__name__} ({expected})") from None
+    if len(reply) < 9 or reply[3] != 4:  # a gRPC server answers with its SETTINGS frame
+        raise InputError(f"address {address!r}: what answers there is not a Ray cluster ({expected})")
+    return address
+
+
+def _check_outputs(out: str | Path, episodes: int) -> Path:
+    """``out`` as a Path if every file a run of ``episodes`` writes there may be written (the
+    folder, ``episodes/`` in it, each episode's log and ``summary.json``:
+    :func:`~trafficweaving.atomic.check_output_file`); InputError naming ``--out`` otherwise."""
+    out = check_output_folder(out, "--out")
+    check_output_folder(out / "episodes", "--out")
+    check_output_file(out / "summary.json", "--out")
+    check_output_file(episode_path(out, 0), "--out")
+    if (out / "episodes").is_dir():  # the logs there of episodes 0..episodes-1
+        for entry in os.scandir(out / "episodes"):
+            match = EPISODE_NAME.fullmatch(entry.name)
+            if match and int(match["index"]) < episodes and entry.name == episode_path(out, int(match["index"])).name:
+                check_output_file(entry.path, "--out")
+    return out
+
+
+_MISSING = object()
+
+
+def _check_record(path: Path, trials, record: dict) -> None:
+    """InputError naming ``path`` unless the episode record read back holds what the summary
+    uses: one trial, ``robot_car`` 0 or 1 (the car labelled robot), an ``initial_condition`` with
+    finite or null ``dv`` and ``tco`` (m/s, s) and the robot's lane, and ``latencies_s`` finite
+    seconds ≥ 0."""
+    def refuse(key: str, value, expected: str):
+        shown = "missing" if value is _MISSING else _short(value)
+        raise InputError(f"{path}: {key} {shown} in the episode record (expected {expected})")
+
+    def number(value) -> bool:
+        return type(value) is float and math.isfinite(value) or type(value) is int and abs(value) <= 2**53
+
+    if len(trials) != 1:
+        raise InputError(f"{path}: {len(trials)} trials (expected the one episode simulate logs per file)")
+    car = record.get("robot_car", _MISSING)
+    if type(car) is not int or car not in (0, 1) or list(trials.roles[0, [car, 1 - car]]) != ["robot", "human"]:
+        refuse("robot_car", car, f"0 or 1, the car the roles label robot: {', '.join(map(str, trials.roles[0]))}")
+    ic = record.get("initial_condition", _MISSING)
+    if not isinstance(ic, dict):
+        refuse("initial_condition", ic, "an object with dv, tco and robot_lane")
+    for key in ("dv", "tco"):
+        if key not in ic or not (ic[key] is None or number(ic[key])):
+            refuse(f"initial_condition.{key}", ic.get(key, _MISSING), "a finite number or null")
+    if ic.get("robot_lane") not in LANES:
+        refuse("initial_condition.robot_lane", ic.get("robot_lane", _MISSING), " or ".join(LANES))
+    latencies = record.get("latencies_s", _MISSING)
+    if not isinstance(latencies, list) or not all(number(s) and s >= 0 for s in latencies):
+        refuse("latencies_s", latencies, "a list of finite planner seconds >= 0")
+
+
 def _reusable(path: Path, spec: EpisodeSpec, index: int) -> dict | None:
     """The JSON record of episode ``index`` logged at ``path``, its metrics measured again from its
     states (the file rewritten where they changed), or None when there is no readable log (to
     compute); InputError when it was made with another spec (a field the log predates counts as
-    its default: a run of an earlier release resumes)."""
+    its default: a run of an earlier release resumes) or its record is malformed
+    (:meth:`EpisodeSpec.from_dict`, :func:`_check_record`)."""
     try:
         trials = load_trials(path)
     except InputError:
         return None
     record = trials.metadata.get("episode")
-    if not isinstance(record, dict) or record.get("index") != index:
+    if not isinstance(record, dict) or type(record.get("index")) is not int or record["index"] != index:
         return None
-    stored = record.get("spec")
-    try:
-        same = isinstance(stored, dict) and EpisodeSpec.from_dict(stored) == spec
-    except TypeError:  # fields this release does not know
-        same = False
-    if not same:
+    if EpisodeSpec.from_dict(record.get("spec"), str(path)) != spec:
         raise InputError(f"{path}: an episode of another run ({json.dumps(record.get('spec'))}; expected "
                          f"{json.dumps(spec.as_dict())}: use another --out folder)")
+    _check_record(path, trials, record)
     metrics = episode_metrics(trials.states[0], int(trials.lengths[0]), record["robot_car"])
     if metrics != record.get("metrics"):  # logged by a release that measured differently
         record = {**record, "metrics": metrics}
@@ -167,8 +291,13 @@ def _run_ray(spec: EpisodeSpec, indices: list[int], workers: int, address: str |
 
     started = not ray.is_initialized()
     if started:
-        options = {"address": address} if address else {"num_cpus": workers, "include_dashboard": False}
-        ray.init(**options, log_to_driver=False, logging_level=logging.WARNING)
+        options = ({"address": address} if address not in (None, "local")
+                   else {"address": address, "num_cpus": workers, "include_dashboard": False})
+        try:
+            ray.init(**options, log_to_driver=False, logging_level=logging.WARNING)
+        except (ConnectionError, ValueError, RuntimeError) as exc:  # e.g. ray:// without Ray Client installed
+            raise InputError(f"address {address!r}: Ray could not start or join it: "
+                             f"{(str(exc).splitlines() or [type(exc).__name__])[0]}") from None
     task = ray.remote(num_cpus=1, max_retries=0)(_worker_episode)
     queue = iter(indices)
     pending: dict = {}
@@ -206,28 +335,36 @@ def simulate(episodes: int, robot: str, human: str, seed: int = 0, workers: int 
     :func:`~.metrics.aggregate`, plus ``computed`` and ``reused`` episode counts, the settings and
     ``seconds``). ``progress``: a tqdm bar on stderr.
 
-    Every argument is checked before an episode runs (InputError: counts ≥ 1, seed 0..2³²−1, the
-    engine, Ray installed for ``engine="ray"``, ``address`` only with Ray, the output folder, the
-    ``device`` (``auto`` resolved here), and the specs, model and ``precision``, by building the
-    agents once). An episode that raises stops the batch with :class:`EpisodeFailed` (finished
-    episodes stay logged; no summary is written). With Ray already initialised in this process, its instance is used
-    (``address`` ignored) and left running.
+    Every argument is checked before an episode runs (InputError: ``episodes`` in
+    1..:data:`MAX_EPISODES`, ``workers`` in 1..:func:`max_workers`, seed 0..2³²−1, the engine, Ray
+    installed for ``engine="ray"``, ``address`` only with Ray and answering
+    (:func:`check_ray_address`), every output path (:func:`_check_outputs`), the ``device``
+    (``auto`` resolved here), and the specs, model and ``precision``, by building the agents
+    once); then the temporary files a killed run left in the folder are removed and the episodes
+    logged there read back (:func:`_reusable`). An episode that raises stops the batch with
+    :class:`EpisodeFailed` (finished episodes stay logged; no summary is written). With Ray
+    already initialised in this process, its instance is used (``address`` ignored) and left
+    running.
     """
-    episodes = validate.integer("episodes", episodes, 1)
-    workers = validate.integer("workers", workers, 1)
-    seed = validate.integer("seed", seed, 0, 2**32 - 1)
+    episodes = validate.integer("episodes", episodes, 1, MAX_EPISODES)
     if engine not in ENGINES:
         raise InputError(f"engine {engine!r} is unknown (expected one of {', '.join(ENGINES)})")
     if engine == "ray" and find_spec("ray") is None:
         raise InputError(RAY_MISSING)
     if address is not None and engine != "ray":
         raise InputError(f"address {address!r} applies only to the ray engine (expected engine 'ray' or no address)")
-    out = check_output_folder(out, "--out")
+    workers = validate.integer("workers", workers, 1, max_workers(engine, address))
+    out = _check_outputs(out, episodes)
     device = str(choose_device(device))
     spec = EpisodeSpec(robot, human, seed, model, None if deadline is None else float(deadline), budget, device, precision)
     agents = spec.agents()
+    if address is not None:
+        check_ray_address(address)
 
     began = time.perf_counter()
+    (out / "episodes").mkdir(parents=True, exist_ok=True)  # an unwritable place fails here, before any episode
+    remove_stale_temporaries(out / "episodes", EPISODE_NAME)
+    remove_stale_temporaries(out, re.compile(r"summary\.json"))
     records: dict[int, dict] = {}
     for index in range(episodes):
         path = episode_path(out, index)

@@ -21,16 +21,18 @@ The result is the record in the dataset format (one trial; roles ``robot`` and `
 
 from __future__ import annotations
 
-import copy
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
-from ..data.trials import TrialSet
-from ..planning.planner import Budget
+from .. import validate
+from ..data.trials import TrialSet, _short
+from ..errors import InputError
+from ..model.predictor import MAX_PLAN_FUTURES
+from ..planning.planner import Budget, plan_options
 from ..scenario import DT, lane_of, study_initial_conditions
-from .humans import ReplayDriver, human_agent
+from .humans import human_agent, replay_start
 from .metrics import episode_metrics, latency_summary
 from .robots import robot_agent
 from .world import Agent, run_episodes
@@ -41,7 +43,7 @@ class EpisodeSpec:
     """What the episodes of a run share: the robot and human specs (``sim.robots.robot_agent``,
     ``sim.humans.human_agent``), the run's ``seed`` (0..2³²−1), the planner's human ``model``, its
     wall-clock ``deadline`` (s) or sample ``budget``, the torch ``device`` and the planner's
-    sampling ``precision``."""
+    sampling ``precision``. Checked on construction (:meth:`__post_init__`)."""
 
     robot: str
     human: str
@@ -51,6 +53,21 @@ class EpisodeSpec:
     budget: Budget | None = None
     device: str = "cpu"
     precision: str = "auto"
+
+    def __post_init__(self):
+        """InputError naming the field unless the specs, ``model``, ``device`` and ``precision``
+        are strings, ``seed`` is an integer in 0..2³²−1, ``deadline`` None or seconds > 0 and
+        ``budget`` None or a :class:`Budget` of at most :data:`~trafficweaving.model.predictor.MAX_PLAN_FUTURES`
+        futures a plan (whether the strings name agents, a model, a device and a precision is
+        checked by :meth:`agents`)."""
+        for name in ("robot", "human", "model", "device", "precision"):
+            if not isinstance(getattr(self, name), str):
+                raise InputError(f"{name} must be a string, got {_short(getattr(self, name))}")
+        object.__setattr__(self, "seed", validate.integer("seed", self.seed, 0, 2**32 - 1))  # NumPy's as int
+        plan_options(self.budget, self.deadline)
+        if self.budget is not None and self.budget.futures > MAX_PLAN_FUTURES:
+            raise InputError(f"budget {self.as_dict()['budget']} samples {self.budget.futures} human futures a plan "
+                             f"(expected at most {MAX_PLAN_FUTURES})")
 
     def agents(self) -> tuple[Agent, Agent]:
         """A new ``(robot, human)`` pair of agents; :class:`~trafficweaving.errors.InputError` for an
@@ -63,10 +80,31 @@ class EpisodeSpec:
         return {**asdict(self), "budget": None if self.budget is None else list(asdict(self.budget).values())}
 
     @staticmethod
-    def from_dict(fields: dict) -> "EpisodeSpec":
-        """The inverse of :meth:`as_dict` (an episode log's ``spec``)."""
-        budget = fields.get("budget")
-        return EpisodeSpec(**{**fields, "budget": None if budget is None else Budget(*budget)})
+    def from_dict(stored, name: str = "episode log") -> "EpisodeSpec":
+        """The inverse of :meth:`as_dict`: the ``spec`` of an episode log, checked as the
+        constructor checks its arguments (a field the log predates takes its default). InputError
+        naming ``name`` (the log's file) for anything else: no spec, not an object, a field this
+        release does not know, a missing robot, human or seed, a value out of range."""
+        known = [f.name for f in fields(EpisodeSpec)]
+        expected = f"expected simulate's episode spec: a JSON object of {', '.join(known)}"
+        if stored is None:
+            raise InputError(f"{name}: the episode record has no spec ({expected})")
+        if not isinstance(stored, dict):
+            raise InputError(f"{name}: the episode spec {_short(stored)} is not an object ({expected})")
+        unknown = sorted(set(stored) - set(known))
+        if unknown:
+            raise InputError(f"{name}: the episode spec has an unknown field {_short(unknown[0])} ({expected})")
+        missing = [key for key in ("robot", "human", "seed") if key not in stored]
+        if missing:
+            raise InputError(f"{name}: the episode spec has no {missing[0]} ({expected})")
+        budget = stored.get("budget")
+        try:
+            if budget is not None and not (isinstance(budget, list) and len(budget) == 3):
+                raise InputError(f"budget must be null or [first_stage_samples, finalists, second_stage_samples], "
+                                 f"got {_short(budget)}")
+            return EpisodeSpec(**{**stored, "budget": None if budget is None else Budget(*budget)})
+        except InputError as exc:
+            raise InputError(f"{name}: episode spec: {exc}") from None
 
 
 @dataclass
@@ -87,28 +125,27 @@ def source_name(index: int) -> str:
     return f"episode-{index:06d}"
 
 
-def _start(rng: np.random.Generator, human: Agent, index: int) -> tuple[np.ndarray, int, dict, Agent]:
-    """``(start [2, 6], robot car, initial condition, human)`` of episode ``index``: a study start
-    with a random robot car; or, for a replayed human, the recording's start with the robot in the
-    recording's other car (car 0) and the human replaying that trial (its fixed trial, else the
-    recorded trials in turn: episode ``index`` replays ``trial_ids[index % n]``)."""
-    if isinstance(human, ReplayDriver):
-        trial = human.trial if human.trial is not None else int(human.trial_ids[index % len(human.trial_ids)])
-        human = copy.copy(human)  # the shared agent keeps its own trial choice
-        human.trial = trial
-        start = human.start_states(trial, me=1)
-        row = int(np.flatnonzero(human.trial_ids == trial)[0])
-        dv, tco = float(human.trials.ic_dv[row]), float(human.trials.ic_tco[row])
-        ic = {"index": None, "trial": trial, "dv": None if np.isnan(dv) else dv, "tco": None if np.isnan(tco) else tco,
-              "robot_lane": str(lane_of(start[0, 1]))}
-        return start, 0, ic, human
+def _start(rng: np.random.Generator, robot: Agent, human: Agent,
+           index: int) -> tuple[np.ndarray, int, dict, Agent, Agent]:
+    """``(start [2, 6], robot car, initial condition, robot, human)`` of episode ``index``: a study
+    start with a random robot car; or, for a replayed human, the recording's start with the robot
+    in the recording's other car (car 0) and the human replaying that trial
+    (:func:`~trafficweaving.sim.humans.replay_start`: its fixed trial, else the recorded trials in
+    turn, episode ``index`` replaying ``trial_ids[index % n]``)."""
+    replay = replay_start([robot, human], episodes=np.array([index]))
+    if replay is not None:
+        start, row = replay.start[0], int(replay.rows[0])
+        dv, tco = float(replay.trials.ic_dv[row]), float(replay.trials.ic_tco[row])
+        ic = {"index": None, "trial": int(replay.trial_ids[0]), "dv": None if np.isnan(dv) else dv,
+              "tco": None if np.isnan(tco) else tco, "robot_lane": str(lane_of(start[0, 1]))}
+        return start, 0, ic, *replay.cars
     ics = study_initial_conditions()
     k = int(rng.integers(len(ics)))
     robot_car = int(rng.integers(2))
     ic = ics[k]
     ic_record = {"index": k, "dv": ic.dv_left_minus_right + 0.0, "tco": ic.tco,  # + 0.0: no -0.0
                  "robot_lane": (ic.lane_a, ic.lane_b)[robot_car]}
-    return ic.start_states(), robot_car, ic_record, human
+    return ic.start_states(), robot_car, ic_record, robot, human
 
 
 def run_episode(spec: EpisodeSpec, index: int, agents: tuple[Agent, Agent] | None = None) -> Episode:
@@ -117,7 +154,7 @@ def run_episode(spec: EpisodeSpec, index: int, agents: tuple[Agent, Agent] | Non
     robot, human = agents if agents is not None else spec.agents()
     began = time.perf_counter()
     rng = np.random.default_rng([spec.seed, index])
-    start, robot_car, ic, human = _start(rng, human, index)
+    start, robot_car, ic, robot, human = _start(rng, robot, human, index)
     cars = [human, human]
     cars[robot_car] = robot
     states, lengths = run_episodes(start[None], cars, rng).recorded()
@@ -155,13 +192,22 @@ def rerun_with_plans(trials: TrialSet, max_futures: int = 32) -> list[tuple[int,
     by running the episode again from its record: ``(t, robot_future [15, 6], human_futures [n, 15,
     6])`` for every plan, by the step ``t`` it was made at, at most ``max_futures`` sampled human
     futures each. None when the log holds no episode record, its robot does not plan, or the run
-    does not reproduce the log (a ``deadline`` run: the plans depend on the machine's speed)."""
+    does not reproduce the log (a ``deadline`` run: the plans depend on the machine's speed).
+    InputError naming the file when the record's spec (:meth:`EpisodeSpec.from_dict`) or index is
+    malformed, or its agents cannot be built here."""
     record = trials.metadata.get("episode")
     if not isinstance(record, dict) or len(trials) != 1:
         return None
-    spec = EpisodeSpec.from_dict(record["spec"])
-    robot, human = spec.agents()
-    episode = run_episode(spec, int(record["index"]), (robot, human))
+    name = str(trials.source_path or "the episode log")
+    spec = EpisodeSpec.from_dict(record.get("spec"), name)
+    index = record.get("index")
+    if isinstance(index, bool) or not isinstance(index, int) or index < 0:
+        raise InputError(f"{name}: episode index {_short(index)} in the record (expected a non-negative integer)")
+    try:
+        robot, human = spec.agents()
+        episode = run_episode(spec, index, (robot, human))
+    except InputError as exc:
+        raise InputError(f"{name}: the episode spec's agents: {exc}") from None
     length = int(trials.lengths[0])
     same = int(episode.trials.lengths[0]) == length and np.array_equal(
         episode.trials.states[0, :, :length], trials.states[0, :, :length])

@@ -8,7 +8,8 @@
   it (:func:`constant_acceleration_future`) or as the simulation tells it (``robot_future``),
   every episode of a batch in one model call.
 * :class:`ReplayDriver`: a recorded human (non-reactive), e.g. the authors' human-in-the-loop
-  trials (``docs/real_humans.md``).
+  trials (``docs/real_humans.md``); :func:`replay_start` starts its episodes where its recordings
+  start, so that it drives its recorded path (closed loop, the environment and the generator).
 * :class:`ConstantVelocityDriver`: keeps its velocity (no acceleration), the simplest baseline of
   sim-agent benchmarks; ``rules`` puts the rule-based robot
   (:class:`~trafficweaving.sim.robots.RuleBasedRobot`) in the human's seat.
@@ -18,11 +19,17 @@
 
 from __future__ import annotations
 
+import copy
+import os
+import re
+from dataclasses import dataclass
+from typing import Sequence
+
 import numpy as np
 import torch
 
 from .. import validate
-from ..data.trials import TrialSet, load_trials
+from ..data.trials import INT32_MAX, TrialSet, _short, load_trials
 from ..dynamics import constant_acceleration_future, future_states
 from ..errors import InputError
 from ..model.checkpoint import load_model
@@ -267,9 +274,9 @@ class ReplayDriver(ReplayedCar):
     ``trials``: the recordings (time step ``DT``); only trials with a human agent are kept, their
     ids in :attr:`trial_ids`. ``trial``: the trial id (the file's ``trial`` column) every episode
     replays; None: each episode's trial is drawn uniformly from :attr:`trial_ids` with the rng at
-    reset (:attr:`played` tells which). The car follows the recording only from the recording's
-    start: start such episodes from :meth:`start_states`; to replay several trials so, set
-    :attr:`trial` to one of :attr:`trial_ids` before each episode's reset.
+    reset (:attr:`played` tells which). The car follows its recorded path only from the
+    recording's start: :func:`replay_start` starts episodes there and binds a copy of the driver
+    to their trials (:meth:`bind`).
     """
 
     def __init__(self, trials: TrialSet, trial: int | None = None):
@@ -283,6 +290,7 @@ class ReplayDriver(ReplayedCar):
         self.human = np.argmax(self.trials.roles == "human", axis=1)  # [n] the replayed agent of each trial
         self.trial = None if trial is None else int(self.trial_ids[self._rows(trial)])
         self.played = np.zeros(0, dtype=self.trial_ids.dtype)
+        self.bound: tuple[np.ndarray, np.ndarray] | None = None  # (rows [m], agents [m]) set by bind
         super().__init__(np.zeros((0, 1, 2)))
 
     def _rows(self, trial) -> np.ndarray:
@@ -296,23 +304,89 @@ class ReplayDriver(ReplayedCar):
                              f"{len(self.trial_ids)} trial ids {self.trial_ids.min()}..{self.trial_ids.max()} with one)")
         return match.argmax(axis=-1)
 
+    def seats(self, rows: np.ndarray, me: int) -> np.ndarray:
+        """The recorded agent in each car of trials ``rows`` (positions in :attr:`trials`, any
+        shape), ``[..., 2]``: the recorded human in car ``me``, the recording's other car in car
+        ``1 - me``."""
+        human = self.human[rows][..., None]
+        return np.concatenate([1 - human, human] if me == 1 else [human, 1 - human], axis=-1)
+
     def start_states(self, trial, me: int = 1) -> np.ndarray:
         """The recorded start of both cars of trial id ``trial`` (an id, or ``[m]`` ids), ``[2, 6]``
         (``[m, 2, 6]``), with the recorded human as car ``me`` and the other car as car ``1 - me``
         (the default ``me = 1``: robot first)."""
         me = validate.integer("me", me, 0, 1)
         rows = self._rows(trial)
-        human = self.human[rows, None]
-        cars = np.concatenate([1 - human, human] if me == 1 else [human, 1 - human], axis=-1)  # [..., 2]
-        return self.trials.states[rows[..., None], cars, 0].copy()
+        return self.trials.states[rows[..., None], self.seats(rows, me), 0].copy()
+
+    def bind(self, rows: np.ndarray, agents: np.ndarray) -> "ReplayDriver":
+        """A copy of this driver whose next reset (of ``m`` episodes) replays, in episode ``i``,
+        recorded agent ``agents[i]`` of trial ``rows[i]`` (positions in :attr:`trials`), ``[m]``
+        each; this driver keeps its own choice."""
+        bound = copy.copy(self)
+        bound.bound = (np.asarray(rows), np.asarray(agents))
+        return bound
 
     def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
         m = len(start)
-        rows = (np.full(m, self._rows(self.trial)) if self.trial is not None
-                else rng.integers(len(self.trial_ids), size=m))
+        if self.bound is not None:
+            rows, agents = self.bound
+            if len(rows) != m:
+                raise RuntimeError(f"this replay driver is bound to {len(rows)} episodes, reset with {m}")
+        else:
+            rows = (np.full(m, self._rows(self.trial)) if self.trial is not None
+                    else rng.integers(len(self.trial_ids), size=m))
+            agents = self.human[rows]
         self.played = self.trial_ids[rows]
         steps = np.minimum(np.arange(self.trials.states.shape[2]), self.trials.lengths[rows, None] - 1)  # [m, T]
-        self.accelerations = self.trials.states[rows[:, None], self.human[rows, None], steps, 4:6]  # [m, T, 2]
+        self.accelerations = self.trials.states[rows[:, None], agents[:, None], steps, 4:6]  # [m, T, 2]
+
+
+@dataclass
+class ReplayStart:
+    """Episodes that start where their recordings start (:func:`replay_start`): both cars'
+    recorded start states ``start [m, 2, 6]``, the agents by car ``cars`` (the replaying ones bound
+    to these episodes), and which recordings: trial ``rows [m]`` of ``trials`` and the recorded
+    agent in each car, ``agents [m, 2]``."""
+
+    start: np.ndarray
+    cars: list
+    trials: TrialSet
+    rows: np.ndarray
+    agents: np.ndarray
+
+    @property
+    def trial_ids(self) -> np.ndarray:
+        """The replayed trials' ids, ``[m]``."""
+        return self.trials.trial_ids[self.rows]
+
+
+def replay_start(cars: Sequence[Agent | None], episodes: np.ndarray | None = None,
+                 rng: np.random.Generator | None = None) -> ReplayStart | None:
+    """Where episodes driven by ``cars`` (an agent per car; None: one that no agent drives, such as
+    a learner) start when a car is a :class:`ReplayDriver`; None when none is.
+
+    Such episodes start from the recorded start of both cars of a recorded trial, so that each
+    replayed car drives its own recorded path: the first replay driver's recorded human in its car,
+    the recording's other car in the other car; a replay driver there too (self-play) replays that
+    other car of the same recording. The trial: the driver's own ``trial`` when it has one; else
+    episode ``episodes[i]`` (``[m]`` non-negative episode numbers) replays the recordings in turn,
+    ``trial_ids[episodes[i] % n]``; with ``episodes`` None, one episode replays a trial drawn
+    uniformly with ``rng``."""
+    seats = [k for k, car in enumerate(cars) if isinstance(car, ReplayDriver)]
+    if not seats:
+        return None
+    me, driver = seats[0], cars[seats[0]]
+    m = 1 if episodes is None else len(episodes)
+    if driver.trial is not None:
+        rows = np.full(m, driver._rows(driver.trial))
+    elif episodes is not None:
+        rows = np.asarray(episodes, dtype=np.int64) % len(driver.trial_ids)
+    else:
+        rows = rng.integers(len(driver.trial_ids), size=1)
+    agents = driver.seats(rows, me)  # [m, 2]
+    bound = [driver.bind(rows, agents[:, k]) if k in seats else car for k, car in enumerate(cars)]
+    return ReplayStart(driver.trials.states[rows[:, None], agents, 0].copy(), bound, driver.trials, rows, agents)
 
 
 class ConstantVelocityDriver:
@@ -326,9 +400,16 @@ class ConstantVelocityDriver:
 
 
 def _replay_target(target: str) -> tuple[str, int | None]:
-    """``FILE`` or ``FILE#K`` (``K`` a non-negative integer trial id) as ``(FILE, K or None)``."""
-    path, _, trial = target.rpartition("#")
-    return (path, int(trial)) if path and trial.isdigit() else (target, None)
+    """``FILE`` or ``FILE#K`` as ``(FILE, K or None)``, ``K`` a trial id in ASCII digits
+    (0..2³¹−1); a ``target`` that names an existing path is a ``FILE``, ``#`` or not. InputError
+    for a missing ``FILE#K`` whose ``K`` is not such a trial id."""
+    path, sep, trial = target.rpartition("#")
+    if not sep or not path or os.path.exists(target):
+        return target, None
+    if re.fullmatch("[0-9]{1,10}", trial) is None or int(trial) > INT32_MAX:
+        raise InputError(f"human 'replay:{target}': no such file, and {trial!r} after its last '#' is not a trial id "
+                         f"(expected replay:FILE or replay:FILE#K, K a trial id in 0..{INT32_MAX} in ASCII digits)")
+    return path, int(trial)
 
 
 def human_agent(spec: str, device: torch.device | str = "cpu", robot_plan: bool = False, other: str = "robot") -> Agent:
@@ -337,6 +418,8 @@ def human_agent(spec: str, device: torch.device | str = "cpu", robot_plan: bool 
     ``SPEC``, on ``device``; ``robot_plan`` and ``other``, who the other car is, as there) or ``replay:FILE[#K]`` (:class:`ReplayDriver`
     of the Parquet dataset ``FILE``, trial id ``K`` or drawn per episode). InputError for an
     unknown spec, a missing or invalid file, or ``robot_plan`` with a human that is not a model."""
+    if not isinstance(spec, str):
+        raise InputError(f"human {_short(spec)} is not a spec (expected one of: {HUMAN_SPECS})")
     kind, _, target = spec.partition(":")
     if robot_plan and kind != "model":
         raise InputError(f"robot_plan applies only to model:SPEC humans, got human {spec!r}")

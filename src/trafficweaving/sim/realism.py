@@ -41,6 +41,13 @@ from .world import Agent, run_episodes
 
 ROLLOUTS = 32
 """Rollouts per stream (WOSAC's 32)."""
+ROLLOUT_BYTES = 200_000
+"""About the memory one rollout of one stream holds while the rollouts run: its states, its feature
+values and a model driver's share of the batch (measured with ``model:driver`` on the 30 real
+trials; about 30 kB without a model)."""
+MAX_ROLLOUTS = 512
+"""Most rollouts per stream: all of a group's rollouts run at once, so the 30 real trials' 30
+recorded humans need about 30 · 512 · :data:`ROLLOUT_BYTES` = 3 GB at most (16 times WOSAC's 32)."""
 BINS = 20
 """Histogram bins over a continuous feature's range."""
 PSEUDOCOUNT = 0.1
@@ -301,8 +308,8 @@ def realism(trials: TrialSet, agents: Callable[[np.ndarray, str], list[tuple[np.
     trials where both cars are labelled human, else ``robot``): one group for a fixed agent, one per
     fold for an agent trained on the trials (out-of-fold). ``rollouts`` per stream; seeded from
     ``seed``."""
-    if not (isinstance(rollouts, int) and rollouts >= 2):
-        raise ValueError(f"rollouts must be an integer of at least 2, got {rollouts!r}")
+    if not (isinstance(rollouts, int) and 2 <= rollouts <= MAX_ROLLOUTS):
+        raise ValueError(f"rollouts must be an integer in 2..{MAX_ROLLOUTS}, got {rollouts!r}")
     streams = Streams.of(trials)
     if len(streams) == 0:
         raise ValueError("the trials have no agent labelled human (expected at least one to roll out)")

@@ -14,6 +14,10 @@ from ..scenario import DT
 from .figures import _save, draw_road
 from .scene import CAR_COLOURS
 
+MAX_ANIMATION_STEPS = 1000
+"""Longest trial animated (100 s; episodes last at most 11 s): its frames are held in memory
+(about 0.7 MB each at the default size) until the GIF is written."""
+
 
 def plot_episode(trials: TrialSet, index: int, path: str | os.PathLike, title: str | None = None) -> Path:
     """Fig. 6 for trial ``index`` of ``trials`` (an episode log: agents labelled ``robot`` and

@@ -10,7 +10,8 @@ accelerations, the driving limits), :mod:`.person` (the person as an agent), :mo
 trial: world, agents, end rule, record), :mod:`.recording` (files), :mod:`.study` (the study
 protocol for a pair, a folder's progress), :mod:`.protocol` (client messages and their checks),
 :mod:`.room` (a room's pages and trials in real time, the shared planner's queue), :mod:`.lobby`
-(the server's rooms, tokens and key), :mod:`.app` (FastAPI app and WebSocket), :mod:`.server`
-(uvicorn, the command), ``static/`` (the page: ``drive.js`` shared state, ``draw.js``,
+(the server's rooms, tokens and key), :mod:`.hosts` (the hosts and origins served), :mod:`.limits`
+(bounds on connections), :mod:`.app` (FastAPI app and WebSocket), :mod:`.server` (uvicorn, the
+command), ``static/`` (the page: ``drive.js`` shared state, ``draw.js``,
 ``input.js``, ``connection.js``).
 """

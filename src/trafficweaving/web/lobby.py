@@ -8,8 +8,10 @@ driver.
 
 On loopback (the default) any page of this machine may create a room. Served on another address
 (``--host``), creating a room needs the server's key too (``/?key=K``: the link the server prints
-when it starts), and the page itself is served only to a request carrying the key or a live room's
-token; the WebSocket's ``Origin`` check (:mod:`.app`) applies everywhere.
+when it starts); the page (``/``) is served only to a request carrying the key or a live room's
+token, and its scripts and style (``/static/...``) only to a browser holding the page pass, a
+cookie set with the page. Every secret is compared in constant time. The ``Host`` and ``Origin``
+checks (:mod:`.hosts`) come first, everywhere.
 """
 
 from __future__ import annotations
@@ -33,26 +35,39 @@ def new_token() -> str:
     return secrets.token_urlsafe(16)
 
 
+def same_secret(given: str, secret: str) -> bool:
+    """Whether ``given`` (any text a client sent) is ``secret``, compared in constant time."""
+    return secrets.compare_digest(given.encode("utf-8", "replace"), secret.encode())
+
+
 class Lobby:
     """The rooms of one server (``config.mode``), recording to ``recorder``; ``robot`` is the
     planner agent the robot rooms share (None in human–human mode); ``key`` is the key that
-    creates rooms and opens the page off loopback (None: not needed, on loopback)."""
+    creates rooms and opens the page off loopback (None: not needed, on loopback); ``page_pass``
+    is the cookie value that fetches the page's own files off loopback, given with the page to a
+    request holding the key or a room's token (it opens nothing else)."""
 
     def __init__(self, config: DriveConfig, recorder: Recorder, robot: NonBlockingMPCPolicy | None,
                  key: str | None = None):
         self.config, self.recorder, self.robot, self.key = config, recorder, robot, key
+        self.page_pass = None if key is None else new_token()
         self.planner = PlannerQueue() if robot is not None else None
         self.rooms: dict[int, Room] = {}
         self.numbers = itertools.count(1)
 
     def _keyed(self, query: Mapping[str, str]) -> bool:
-        return self.key is None or secrets.compare_digest(query.get("key", ""), self.key)
+        return self.key is None or same_secret(query.get("key", ""), self.key)
+
+    def may_fetch_files(self, page_pass: str | None) -> bool:
+        """Whether a request for the page's files (``/static/...``) holding the cookie value
+        ``page_pass`` (None: no cookie) is served."""
+        return self.page_pass is None or (page_pass is not None and same_secret(page_pass, self.page_pass))
 
     def _named_room(self, query: Mapping[str, str]) -> Room:
         """The room ``query`` names with its token; Refused otherwise."""
         name, token = query.get("room", ""), query.get("token", "")
         room = self.rooms.get(int(name)) if name.isascii() and name.isdigit() and len(name) < 10 else None
-        if room is None or room.join_path is None or not secrets.compare_digest(token, room.token):
+        if room is None or room.join_path is None or not same_secret(token, room.token):
             raise Refused(f"no room {name!r} with that token")
         return room
 

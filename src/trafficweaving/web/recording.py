@@ -13,8 +13,9 @@ import re
 from pathlib import Path
 
 from ..atomic import check_output_folder
-from ..data.trials import TrialSet, load_trials
+from ..data.trials import TrialSet, _short, load_trials
 from ..errors import InputError
+from ..scenario import DT
 
 FILE_PATTERN = re.compile(r"drive_(\d{6,})\.parquet")
 """Names of recorded trials: ``drive_`` and the trial number."""
@@ -61,7 +62,41 @@ def recorded_files(folder: str | os.PathLike) -> list[Path]:
     return files
 
 
+def check_recording(trials: TrialSet) -> TrialSet:
+    """``trials`` (one file of a ``trafficweaving drive`` folder, read with its ``source_path``) if
+    it holds what the study's progress reads: one trial at the scenario's ``DT``, and a ``drive``
+    record (absent from recordings made before it) whose ``mode``, ``started_at`` and ``reason``
+    are strings or null and whose ``room`` is null or an object with ``session`` (a string or
+    null), ``participants`` (a list or null) and ``round`` (an integer ≥ 0 or null). InputError
+    naming the file otherwise."""
+    def refuse(name, key: str, value, expected: str):
+        raise InputError(f"{name}: {key} {_short(value)} in the drive record (expected {expected})")
+
+    name = trials.source_path or "a recording"
+    if len(trials) != 1:
+        raise InputError(f"{name}: {len(trials)} trials (expected the one trial trafficweaving drive records per file)")
+    if trials.dt != DT:
+        raise InputError(f"{name}: time step {trials.dt:g} s (expected {DT:g} s, as trafficweaving drive records)")
+    record = trials.metadata.get("drive", {})
+    if not isinstance(record, dict):
+        refuse(name, "drive", record, "an object")
+    for key in ("mode", "started_at", "reason"):
+        if not isinstance(record.get(key), (str, type(None))):
+            refuse(name, key, record[key], "a string or null")
+    room = record.get("room")
+    if not isinstance(room, (dict, type(None))):
+        refuse(name, "room", room, "an object or null")
+    room = room or {}
+    if not isinstance(room.get("session"), (str, type(None))):
+        refuse(name, "room.session", room["session"], "a string or null")
+    if not isinstance(room.get("participants"), (list, type(None))):
+        refuse(name, "room.participants", room["participants"], "a list or null")
+    if not (room.get("round") is None or type(room["round"]) is int and room["round"] >= 0):
+        refuse(name, "room.round", room["round"], "an integer >= 0 or null")
+    return trials
+
+
 def load_recordings(folder: str | os.PathLike) -> list[TrialSet]:
     """Every recorded trial of ``folder`` (:func:`recorded_files`), each checked by
-    :func:`~trafficweaving.data.trials.load_trials`."""
-    return [load_trials(path) for path in recorded_files(folder)]
+    :func:`~trafficweaving.data.trials.load_trials` and :func:`check_recording`."""
+    return [check_recording(load_trials(path)) for path in recorded_files(folder)]

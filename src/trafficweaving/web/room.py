@@ -83,7 +83,10 @@ PLAN_FUTURES_SHOWN = 16
 """Sampled human futures of each plan sent to the page."""
 OUTBOX_STATE_BACKLOG = 8
 """``state`` messages are dropped while this many messages wait to be sent to a page (a page that
-does not read must not make the server queue without bound; other messages are never dropped)."""
+does not read must not make the server queue without bound)."""
+OUTBOX_LIMIT = 256
+"""Most messages waiting to be sent to a page; one more drops the page (it does not read what it
+is sent, e.g. while it floods the server with refused messages)."""
 
 
 @dataclass(frozen=True)
@@ -143,20 +146,31 @@ def period_summary(starts: list[float]) -> dict:
 
 class Member:
     """A page in a room: its ``seat`` and the texts waiting to be sent to it (``send`` delivers
-    one; a coroutine that may raise once the page is gone)."""
+    one; a coroutine that may raise once the page is gone). A page with :data:`OUTBOX_LIMIT`
+    texts waiting is dropped: its queue emptied, ``drop`` called (it closes the connection, so
+    that the page leaves its room), and nothing more queued."""
 
-    def __init__(self, send: Callable[[str], Awaitable[None]]):
-        self.send = send
+    def __init__(self, send: Callable[[str], Awaitable[None]], drop: Callable[[], None] | None = None):
+        self.send, self.drop = send, drop
         self.seat = -1
         self.outbox: asyncio.Queue[str] = asyncio.Queue()
         self.sender: asyncio.Task | None = None
+        self.dropped = False
 
     def open(self) -> None:
         self.sender = asyncio.create_task(self._send_loop())
 
     def post(self, text: str, droppable: bool = False) -> None:
         """Queue ``text`` (``droppable``: skipped while the page lags behind)."""
-        if droppable and self.outbox.qsize() >= OUTBOX_STATE_BACKLOG:
+        if self.dropped or (droppable and self.outbox.qsize() >= OUTBOX_STATE_BACKLOG):
+            return
+        if self.outbox.qsize() >= OUTBOX_LIMIT:
+            self.dropped = True
+            self.outbox = asyncio.Queue()
+            if self.sender is not None:
+                self.sender.cancel()
+            if self.drop is not None:
+                self.drop()
             return
         self.outbox.put_nowait(text)
 
