@@ -215,14 +215,11 @@ def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoin
     assert payload["calibration"]["nll_exact"] == report["nll_exact"]
     fold, fold_payload = load_checkpoint(tmp_path / "cfolds" / "fold_2.pt")
     assert fold.output_scale.tolist() == scale and len(fold_payload["held_out_trials"]) == 2
-    # worker processes score the same grid (their models are private copies, not shared and overwritten)
-    code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--out", tmp_path / "w.pt",
-                       "--samples", 10, "--temperatures", "1,2", "--scales", "1,2", "--workers", 2, "--json")
-    assert code == 0 and json.loads(out)["grid"] == report["grid"]
-    # with a companion, the calibrated setting is then mixed with it at the weight chosen out-of-fold
+    # with a companion, the calibrated setting is then mixed with it at the weight chosen out-of-fold; scored
+    # in worker processes, the same grid (their models are private copies, not shared and overwritten)
     code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--companion", model,
                        "--out", tmp_path / "mixed.pt", "--out-folds", tmp_path / "mfolds", "--samples", 10,
-                       "--temperatures", "1,2", "--scales", "1,2", "--json")
+                       "--temperatures", "1,2", "--scales", "1,2", "--workers", 2, "--json")
     mixed = json.loads(out)
     extra = mixed["grid"][len(grid):]
     assert code == 0 and mixed["grid"][:len(grid)] == grid and mixed["companion"] == str(model)
