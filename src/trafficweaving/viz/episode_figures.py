@@ -73,10 +73,11 @@ def animate_episode(states: np.ndarray, roles: tuple[str, str], path: str | os.P
     by_step = sorted(plans, key=lambda p: p[0])
     y_min = float(np.nanmin(states[:, :, 1]))
     frames = []
+    fig = Figure(figsize=(size[0] / 100, size[1] / 100), dpi=100)  # one figure, cleared every frame
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.06, 0.15, 0.92, 0.72))
     for t in range(steps):
-        fig = Figure(figsize=(size[0] / 100, size[1] / 100), dpi=100)
-        canvas = FigureCanvasAgg(fig)
-        ax = fig.add_axes((0.06, 0.15, 0.92, 0.72))
+        ax.clear()
         centre = float(states[:, t, 0].mean())
         draw_road(ax, (centre - 45.0, centre + 35.0), y_min)
         current = [p for p in by_step if p[0] <= t]
