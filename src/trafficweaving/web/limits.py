@@ -149,15 +149,19 @@ class _StallBound:
         super().resume_writing()
 
     def _stop_stall_timer(self) -> None:
-        if self.stall_timer is not None:
-            self.stall_timer.cancel()
-            self.stall_timer = None
+        self.stall_timer = _cancelled(self.stall_timer)
 
     def _stalled(self) -> None:
         self.stall_timer = None
         log.warning("drive: dropped the connection of %s: it took nothing sent to it for %g s", _peer(self),
                     self.guard.limits.write_stall_s)
         self.transport.abort()
+
+
+def _cancelled(timer: asyncio.TimerHandle | None) -> None:
+    """Cancel ``timer`` (None: no timer); None, for the attribute that held it."""
+    if timer is not None:
+        timer.cancel()
 
 
 def _peer(protocol) -> str:
@@ -216,9 +220,7 @@ class BoundedH11(_StallBound, H11Protocol):
         self.request_timer = self.loop.call_later(self.guard.limits.header_timeout_s, self._request_timed_out)
 
     def _stop_request_timer(self) -> None:
-        if self.request_timer is not None:
-            self.request_timer.cancel()
-            self.request_timer = None
+        self.request_timer = _cancelled(self.request_timer)
 
     def _request_timed_out(self) -> None:
         self.request_timer = None
