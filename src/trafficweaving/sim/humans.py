@@ -386,7 +386,7 @@ def replay_start(cars: Sequence[Agent | None], episodes: np.ndarray | None = Non
         rows = rng.integers(len(driver.trial_ids), size=1)
     agents = driver.seats(rows, me)  # [m, 2]
     bound = [driver.bind(rows, agents[:, k]) if k in seats else car for k, car in enumerate(cars)]
-    return ReplayStart(driver.trials.states[rows[:, None], agents, 0].copy(), bound, driver.trials, rows, agents)
+    return ReplayStart(driver.start_states(driver.trial_ids[rows], me), bound, driver.trials, rows, agents)
 
 
 class ConstantVelocityDriver:
