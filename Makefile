@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 OUT    ?= out
 
-.PHONY: demo test install bench drive drive-screenshot clean
+.PHONY: demo test test-fast install bench drive drive-screenshot clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +20,10 @@ demo: install
 test: install
 	$(PY) -m pytest
 
+# the fast tier while editing: every module, under a minute on 2 cores (no slow or browser tests)
+test-fast: install
+	$(PY) -m pytest -q -m "not slow and not browser"
+
 bench: install
 	$(PY) benchmarks/bench_generate.py
 	$(PY) benchmarks/bench_train.py
@@ -31,7 +35,7 @@ drive: install
 
 # docs/figures/drive.png: the browser test's screenshot (needs /usr/bin/chromium)
 drive-screenshot: install
-	TRAFFICWEAVING_DRIVE_SCREENSHOT=docs/figures/drive.png $(PY) -m pytest -q tests/test_web_browser.py
+	TRAFFICWEAVING_DRIVE_SCREENSHOT=docs/figures/drive.png $(PY) -m pytest -q tests/web/test_web_browser.py
 
 clean:
 	rm -rf $(VENV) $(OUT)

@@ -42,8 +42,9 @@ import numpy as np
 
 from trafficweaving.data.trials import load_trials
 from trafficweaving.scenario import DT, LANE_CENTRE_Y, LANE_DIVIDER_Y, REPLAN_PERIOD_S
+from trafficweaving.web.protocol import CONTROL_INTERVAL_S
 from trafficweaving.web.recording import recorded_files
-from trafficweaving.web.room import CONTROL_INTERVAL_S, DriveConfig
+from trafficweaving.web.room import DriveConfig
 from trafficweaving.web.server import build_server, default_threads
 
 CHROMIUM = "/usr/bin/chromium"

@@ -1,5 +1,5 @@
 """Benchmark: the two-stage planner at the paper's budget (every candidate × 16 samples, best 32 ×
-1024: 98,304 human futures per plan), naive vs ours, and the decision quality of the real-time mode.
+1024: 98,304 human futures per plan), naive vs ours, and the decision quality of real-time plans.
 
 Measured in one run, same process, same model:
 
@@ -15,7 +15,7 @@ Measured in one run, same process, same model:
 * ``int8_seconds``: our planner with the fused, compiled decoder steps and int8 hidden-state
   matrix multiplies (``precision="int8"``, :mod:`trafficweaving.model.fused_decoder`; compiled in
   a warm-up plan first), and ``int8_speedup`` against the naive loop;
-* real-time mode (``--deadline``, default 0.3 s) on recorded situations (simulated human–human
+* real-time plans (``--deadline``, default 0.3 s) on recorded situations (simulated human–human
   trials, the other car playing the robot; or, with ``--episodes``, the closest calls of
   closed-loop episodes, where choices matter most): how often its first free window equals the full-budget
   plan's, its expected-cost regret against the full-budget choice (both re-scored with 2048 fresh
@@ -23,7 +23,7 @@ Measured in one run, same process, same model:
   ``--realtime-plans`` real-time plans per situation, and, as the noise floor, the same for a second
   full-budget plan with another seed;
   the same two figures for full-budget plans in bfloat16 and in int8; and how often the real-time
-  plan's first free window equals that of a full-budget plan sampled in the real-time mode's
+  plan's first free window equals that of a full-budget plan sampled in the real-time plans'
   precision (``--realtime-precision``), with, as that precision's noise floor, the same for two
   such full-budget plans with different seeds.
 
@@ -48,7 +48,7 @@ import torch
 from trafficweaving.data.trials import load_trials
 from trafficweaving.dynamics import future_states
 from trafficweaving.errors import InputError
-from trafficweaving.model.checkpoint import load_model
+from trafficweaving.model.registry import load_model
 from trafficweaving.model.cvae import ACCEL, STATE_DIM
 from trafficweaving.model.predictor import PRECISIONS, HumanPredictor, cpu_matrix_features
 from trafficweaving.planning.candidates import ACCELERATIONS, STEPS_PER_WINDOW, Action, robot_candidates
@@ -156,7 +156,8 @@ def closest_calls(folder: Path, count: int):
     return out
 
 
-def main() -> None:
+def arguments() -> tuple[argparse.Namespace, int]:
+    """The command line's arguments, checked, and the thread count."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument("--model", default="default")
@@ -180,14 +181,13 @@ def main() -> None:
         positive_seconds("--deadline", args.deadline)
     except InputError as error:
         parser.error(str(error))
-    torch.set_num_threads(threads)
-    model = load_model(args.model)
-    common = args.random_numbers == "common"
-    exact, low = (HumanPredictor(model, precision=p, common_random_numbers=common) for p in ("float32", "bfloat16"))
-    budget = Budget()
-    history, first = example_history(), Action.of(0.0, "right").index
-    cost = PaperCost(goal_y=LANE_CENTRE_Y["left"])
+    return args, threads
 
+
+def speed(args: argparse.Namespace, threads: int, model, exact: HumanPredictor, low: HumanPredictor, budget: Budget,
+          history: np.ndarray, first: int, cost: PaperCost) -> tuple[dict, Planner, Planner]:
+    """The report's speed figures (module docstring) and the float32 and int8 full-budget planners."""
+    common = args.random_numbers == "common"
     report = {"threads": threads, "futures": budget.futures, "random_numbers": args.random_numbers,
               "cpu": cpu_matrix_features()}
     report["matmul_peak_gflops"] = round(matmul_peak(2048, 136, 512), 1)
@@ -207,8 +207,15 @@ def main() -> None:
         report["naive_seconds"] = round(naive_plan(model, history, first, cost, budget), 3)
         report["speedup"] = round(report["naive_seconds"] / report["seconds"], 2)
         report["int8_speedup"] = round(report["naive_seconds"] / report["int8_seconds"], 2)
-    print(json.dumps(report), flush=True)
+    return report, planner, quantised
 
+
+def decision_quality(args: argparse.Namespace, model, planner: Planner, exact: HumanPredictor, low: HumanPredictor,
+                     quantised: Planner, budget: Budget, history: np.ndarray, first: int, cost: PaperCost) -> dict:
+    """The report's ``realtime`` figures (module docstring), from ``planner`` (float32, full budget:
+    the reference and the re-scoring), the bfloat16 and int8 full-budget planners, and real-time
+    plans at ``--realtime-precision``."""
+    common = args.random_numbers == "common"
     agree, regret, agree_full, regret_full, agree_bf16, regret_bf16, late, spread = [], [], [], [], [], [], [], []
     agree_int8, regret_int8, agree_same, agree_same_full = [], [], [], []
     realtime = Planner(HumanPredictor(model, precision=args.realtime_precision, common_random_numbers=common), budget,
@@ -239,7 +246,7 @@ def main() -> None:
         regret_bf16.append(expected_cost(planner, hist, fixed, c, lower.index) - reference)
         agree_int8.append(coarse.actions[1] == full.actions[1])
         regret_int8.append(expected_cost(planner, hist, fixed, c, coarse.index) - reference)
-    report["realtime"] = {
+    return {
         "deadline": args.deadline, "situations": len(chosen), "plans": len(late), "max_seconds": round(max(late), 3),
         "within_deadline": int(sum(s <= args.deadline for s in late)),
         "first_action_agreement": round(float(np.mean(agree)), 3),
@@ -255,6 +262,20 @@ def main() -> None:
         "same_precision_agreement": round(float(np.mean(agree_same)), 3),
         "same_precision_full_vs_full_agreement": round(float(np.mean(agree_same_full)), 3),
     }
+
+
+def main() -> None:
+    args, threads = arguments()
+    torch.set_num_threads(threads)
+    model = load_model(args.model)
+    common = args.random_numbers == "common"
+    exact, low = (HumanPredictor(model, precision=p, common_random_numbers=common) for p in ("float32", "bfloat16"))
+    budget = Budget()
+    history, first = example_history(), Action.of(0.0, "right").index
+    cost = PaperCost(goal_y=LANE_CENTRE_Y["left"])
+    report, planner, quantised = speed(args, threads, model, exact, low, budget, history, first, cost)
+    print(json.dumps(report), flush=True)
+    report["realtime"] = decision_quality(args, model, planner, exact, low, quantised, budget, history, first, cost)
     print(json.dumps(report))
 
 

@@ -20,7 +20,8 @@ import torch
 
 from trafficweaving.sim.generate import generate_trials
 from trafficweaving.model.cvae import CVAE
-from trafficweaving.model.train import TrainConfig, _MinibatchOrder, _noisy, loss_terms, prepare_data
+from trafficweaving.model.train import _MinibatchOrder, _noisy, loss_terms, prepare_data
+from trafficweaving.model.train_config import TrainConfig
 
 
 def main() -> None:

@@ -20,10 +20,12 @@ import torch
 
 from trafficweaving.demo import DEMO_REAL_PICKS
 from trafficweaving.data.trials import load_trials
-from trafficweaving.model.checkpoint import load_model, read_checkpoint
+from trafficweaving.model.checkpoint import read_checkpoint
 from trafficweaving.model.evaluate import evaluate
 from trafficweaving.model.exemplars import build_exemplars, split_by_trial
-from trafficweaving.model.train import TrainConfig
+from trafficweaving.model.registry import load_model, model_path
+from trafficweaving.model.spec import parse_model_spec
+from trafficweaving.model.train_config import TrainConfig
 from trafficweaving.viz.model_figures import plot_predictions, plot_validation_curves
 
 
@@ -52,8 +54,8 @@ def main() -> None:
         on_synthetic, on_real = evaluate(model, held_out).summary(), evaluate(model, real_ex).summary()
         print(f"{name}: synthetic {on_synthetic}, real {on_real} ({time.perf_counter() - start:.0f} s)", flush=True)
         steps = "—"
-        if not spec.startswith("authors:"):
-            payload = read_checkpoint(spec)
+        if parse_model_spec(spec).kind != "authors":
+            payload = read_checkpoint(model_path(spec))
             steps, curves[name] = f"{payload['step']:,}", payload.get("history", [])
         rows.append(f"| {name} | {model.config.latent_vars} × {model.config.latent_classes} | {model.config.components} | {steps} | "
                     + " | ".join(fmt(r[k]) for r in (on_synthetic, on_real) for k in ("nll_exact", "nll_is", "nll_naive")) + " |")
@@ -63,7 +65,7 @@ def main() -> None:
         default_name, default_spec = args.model[0].split("=", 1)
         plot_validation_curves(curves, figures / "validation_curves.png")
         for name, spec in (args.model[0].split("=", 1), args.model[-1].split("=", 1)):
-            slug = "authors" if spec.startswith("authors:") else "default"
+            slug = "authors" if parse_model_spec(spec).kind == "authors" else "default"
             plot_predictions(load_model(spec), real, DEMO_REAL_PICKS, figures / f"fig3_real_{slug}.png", title=f"{name} on real trials")
         syn_picks = [(i, 0, min(t, int(held_trials.lengths[i]) - 16)) for i, t in ((0, 12), (1, 22))]
         plot_predictions(load_model(default_spec), held_trials, syn_picks, figures / "fig3_synthetic_default.png",

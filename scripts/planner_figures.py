@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trafficweaving.model.checkpoint import load_model
+from trafficweaving.model.registry import load_model
 from trafficweaving.model.predictor import HumanPredictor
 from trafficweaving.planning.candidates import Action
 from trafficweaving.planning.costs import PaperCost

@@ -28,7 +28,7 @@ import torch
 from trafficweaving.atomic import atomic_write
 from trafficweaving.data.behaviour import LANE_BAND, SIDEWAYS_SPEED
 from trafficweaving.data.trials import load_trials
-from trafficweaving.model.checkpoint import load_model
+from trafficweaving.model.registry import load_model
 from trafficweaving.model.crossval import out_of_fold_models
 from trafficweaving.model.exemplars import build_exemplars
 from trafficweaving.model.metrics import (DIRECTIONS, DURING_WITHOUT_END, HORIZON_STEPS, PHASES, InstanceMetrics,

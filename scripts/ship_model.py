@@ -17,7 +17,9 @@ from __future__ import annotations
 import argparse
 import json
 
-from trafficweaving.model.checkpoint import SHIPPED_MODELS, export_checkpoint, shipped_model_path
+from trafficweaving.model.checkpoint import export_checkpoint
+from trafficweaving.model.registry import shipped_model_path
+from trafficweaving.model.spec import SHIPPED_MODELS
 
 
 def main() -> None:

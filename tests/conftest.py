@@ -3,7 +3,8 @@ their trained model), found beside the repository in ``../shared/reference`` or 
 ``$TRAFFICWEAVING_SHARED/reference``.
 
 A test that needs it takes one of these fixtures and is *skipped with the reason shown* when the
-data is absent (``pytest -rs`` lists them); no test runs half of its checks without it.
+data is absent (``pytest -rs`` lists them); no test runs half of its checks without it. Markers
+(registered in pyproject.toml): ``slow`` and ``browser``, both left out by ``make test-fast``.
 """
 
 from __future__ import annotations
@@ -46,3 +47,11 @@ def authors_model_dir() -> Path:
     if not ((folder / "weights.npz").is_file() and (folder / "reference_outputs.npz").is_file()):
         pytest.skip(f"the authors' trained model and reference outputs are not present ({folder})")
     return folder
+
+
+def pytest_collection_modifyitems(items):
+    """Every test that takes the ``browser`` fixture (a real Chromium) is marked ``browser``, so
+    ``pytest -m "not browser"`` (``make test-fast``) leaves it out."""
+    for item in items:
+        if "browser" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.browser)

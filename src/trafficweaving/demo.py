@@ -7,7 +7,7 @@
 3. the shipped human model: its scores on the real trials (in-sample, cross-validated and
    calibrated, as stored in the checkpoint) and a figure of its sampled futures (paper Fig. 3);
 4. one full-budget plan of the paper's planner against that model, drawn;
-5. closed loop: the planner with the shipped model in real-time mode (0.3 s per plan) drives
+5. closed loop: the planner with the shipped model against a real-time deadline (0.3 s per plan) drives
    against simulated drivers and against a model-driven human (the authors' model when at hand,
    else the shipped one), with the metrics of each batch, the paper's Fig. 6 of an episode and
    its animation (each plan's chosen future and the human futures it sampled).
@@ -32,7 +32,7 @@ DEMO_SYNTHETIC_PICKS = [(0, 0, 12), (1, 1, 20)]
 DEMO_EPISODES = 4
 """Closed-loop episodes per human in the demo (``trafficweaving simulate`` runs as many as asked)."""
 DEMO_DEADLINE = 0.3
-"""The demo's planner runs in real-time mode: each plan within the 0.3 s replanning period, s."""
+"""The demo's planner plans to a real-time deadline: each plan within the 0.3 s replanning period, s."""
 
 
 def find_hitl_dir(explicit: str | Path | None) -> Path | None:
@@ -91,10 +91,11 @@ def _score(value) -> str:
 
 def _human_model_report(dataset: TrialSet, reference: TrialSet | None, figures: Path, log: Callable[[str], None]) -> None:
     """The shipped human model on the real trials (when at hand) and its predictions as a figure."""
-    from .model.checkpoint import default_model_path, load_checkpoint
+    from .model.checkpoint import load_checkpoint
     from .model.evaluate import evaluate
     from .model.exemplars import build_exemplars
     from .model.mixture import describe
+    from .model.registry import default_model_path
     from .viz.model_figures import plot_predictions
 
     model, payload = load_checkpoint(default_model_path())
@@ -123,8 +124,8 @@ def _human_model_report(dataset: TrialSet, reference: TrialSet | None, figures: 
 
 def _plan_figure(figures: Path, log: Callable[[str], None]) -> None:
     """One full-budget plan with the shipped model, drawn beside braking and accelerating alternatives."""
-    from .model.checkpoint import load_model
     from .model.predictor import HumanPredictor
+    from .model.registry import load_model
     from .planning.candidates import Action
     from .planning.costs import PaperCost
     from .planning.planner import Planner, example_history

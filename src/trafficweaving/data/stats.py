@@ -12,6 +12,7 @@ import numpy as np
 from scipy import stats as scipy_stats
 
 from ..scenario import STUDY_TRIALS, TCO_VALUES, across_divider
+from .behaviour import behaviour_samples, compare_behaviour, summarise
 from .trials import TrialSet
 
 TABLE1_PAPER = {
@@ -108,6 +109,27 @@ def table1_test(table: dict, counts: dict) -> dict | None:
     chi2 = float(sum(c["z"] ** 2 for row in cells.values() for c in row.values()))
     dof = sum(len(row) for row in cells.values())
     return {"cells": cells, "chi2": chi2, "dof": dof, "p_value": float(scipy_stats.chi2.sf(chi2, dof))}
+
+
+def dataset_stats(trials: TrialSet, reference: TrialSet | None = None) -> dict:
+    """The summary of a dataset (``trafficweaving stats``): ``trials``, trial lengths in steps,
+    Table I with its counts and its test against the paper's, and the humans' driving behaviour
+    (:func:`~trafficweaving.data.behaviour.summarise`); with ``reference``, the humans' behaviour
+    compared with the reference's (``behaviour_vs_reference``)."""
+    t1 = table1(trials)
+    humans = behaviour_samples(trials, role="human")
+    payload = {
+        "trials": len(trials),
+        "steps": {"min": int(trials.lengths.min()), "mean": float(trials.lengths.mean()),
+                  "max": int(trials.lengths.max())},
+        "table1": t1["table1"],
+        "table1_counts": t1["counts"],
+        "table1_vs_paper": table1_test(t1["table1"], t1["counts"]),
+        "behaviour": {name: summarise(values) for name, values in humans.items()},
+    }
+    if reference is not None:
+        payload["behaviour_vs_reference"] = compare_behaviour(humans, behaviour_samples(reference, role="human"))
+    return payload
 
 
 def format_table1_test(test: dict | None) -> str:

@@ -378,7 +378,37 @@ def trials_from_table(table: pa.Table, name: str) -> TrialSet:
     meta, dt = _metadata(table, name)
     if table.num_rows == 0:
         raise InputError(f"{name}: the dataset has no rows (expected at least one trial)")
+    rows = _read_rows(table, name)
+    order = np.lexsort((rows["step"], rows["agent"], rows["trial"]))
+    rows = {column: values[order] for column, values in rows.items()}
+    trial_ids, starts, lengths = _segments(rows, name)
+    _check_constant(rows, starts, lengths, name)
+    _check_lengths_and_times(rows, trial_ids, lengths, dt, name)
 
+    n, t_max = len(trial_ids), int(lengths.max())
+    packed = np.full((n, 2, t_max, 6), np.nan)
+    trial_index = np.searchsorted(trial_ids, rows["trial"])
+    packed[trial_index, rows["agent"], rows["step"]] = rows["states"]
+    seg_first = starts.reshape(n, 2)
+    first = seg_first[:, 0]
+    return TrialSet(
+        states=packed,
+        lengths=lengths.astype(np.int64),
+        trial_ids=trial_ids.astype(np.int32),
+        roles=rows["role"][seg_first],
+        start_lanes=rows["lane"][seg_first],
+        drivers=rows["driver"][seg_first].astype(np.int32),
+        ic_dv=rows["ic_dv"][first],
+        ic_tco=rows["ic_tco"][first],
+        sources=rows["source"][first],
+        dt=dt,
+        metadata=meta,
+    )
+
+
+def _read_rows(table: pa.Table, name: str) -> dict[str, np.ndarray]:
+    """The table's columns as arrays, one entry per row (``states [rows, 6]``), their values
+    checked: integers in their types' ranges, finite states, known roles and lanes."""
     trial = _integers(table, "trial", name, INT32_MIN, INT32_MAX)
     agent = _integers(table, "agent", name, 0, 1)
     step = _integers(table, "step", name, 0, INT32_MAX)
@@ -400,12 +430,15 @@ def trials_from_table(table: pa.Table, name: str) -> TrialSet:
         unknown = sorted(set(map(str, np.unique(values))) - set(allowed))
         if unknown:
             raise InputError(f"{name}: unknown {what} {_short(unknown[0])} (expected one of {', '.join(allowed)})")
+    return {"trial": trial, "agent": agent, "step": step, "t": t, "states": states, "role": role, "lane": lane,
+            "driver": driver, "source": source, "ic_dv": ic_dv, "ic_tco": ic_tco}
 
-    order = np.lexsort((step, agent, trial))
-    trial, agent, step, t = trial[order], agent[order], step[order], t[order]
-    states, role, lane, driver, source = states[order], role[order], lane[order], driver[order], source[order]
-    ic_dv, ic_tco = ic_dv[order], ic_tco[order]
 
+def _segments(rows: dict[str, np.ndarray], name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sorted trial ids ``[n]``, the first row of each (trial, agent) segment ``[2n]`` and the
+    trials' lengths ``[n]`` of ``rows`` sorted by trial, agent and step; refuses trials without
+    exactly two agents of equal length, or whose steps are not 0, 1, ... in order."""
+    trial, agent, step = rows["trial"], rows["agent"], rows["step"]
     trial_ids = np.unique(trial)
     n = len(trial_ids)
     key_start = np.r_[True, (trial[1:] != trial[:-1]) | (agent[1:] != agent[:-1])]
@@ -419,17 +452,25 @@ def trials_from_table(table: pa.Table, name: str) -> TrialSet:
     if (seg_len2[:, 0] != seg_len2[:, 1]).any():
         k = int(np.argmax(seg_len2[:, 0] != seg_len2[:, 1]))
         raise InputError(f"{name}: trial {trial_ids[k]} has agents of different lengths {seg_len2[k].tolist()} (expected equal)")
-    lengths = seg_len2[:, 0]
     expected_step = np.arange(len(trial)) - np.repeat(starts, seg_len)
     if (step != expected_step).any():
         r = int(np.argmax(step != expected_step))
         raise InputError(f"{name}: trial {trial[r]} agent {agent[r]} has steps that are not consecutive from 0 (found step {step[r]}, expected {expected_step[r]})")
+    return trial_ids, starts, seg_len2[:, 0]
 
-    segment_first = np.repeat(starts, seg_len)  # row of each row's (trial, agent) first step
+
+def _check_constant(rows: dict[str, np.ndarray], starts: np.ndarray, lengths: np.ndarray, name: str) -> None:
+    """Refuses a role, start lane or driver that changes within an agent's rows, or a source or
+    initial condition that changes within a trial's (``starts``, ``lengths``: :func:`_segments`)."""
+    trial, agent, step = rows["trial"], rows["agent"], rows["step"]
+    segment_first = np.repeat(starts, np.repeat(lengths, 2))  # row of each row's (trial, agent) first step
     trial_first = np.repeat(starts[::2], 2 * lengths)  # row of each row's trial's first row
-    for values, first, what, per in ((role, segment_first, "role", "agent"), (lane, segment_first, "start_lane", "agent"),
-                                     (driver, segment_first, "driver", "agent"), (source, trial_first, "source", "trial"),
-                                     (ic_dv, trial_first, "ic_dv", "trial"), (ic_tco, trial_first, "ic_tco", "trial")):
+    for column, first, what, per in (("role", segment_first, "role", "agent"),
+                                     ("lane", segment_first, "start_lane", "agent"),
+                                     ("driver", segment_first, "driver", "agent"),
+                                     ("source", trial_first, "source", "trial"),
+                                     ("ic_dv", trial_first, "ic_dv", "trial"), ("ic_tco", trial_first, "ic_tco", "trial")):
+        values = rows[column]
         same = values == values[first]
         if values.dtype.kind == "f":
             same |= np.isnan(values) & np.isnan(values[first])
@@ -438,32 +479,17 @@ def trials_from_table(table: pa.Table, name: str) -> TrialSet:
             raise InputError(f"{name}: trial {trial[r]} agent {agent[r]} changes {what} at step {step[r]} "
                              f"({_short(values[first[r]].item())} then {_short(values[r].item())}; expected one value per {per})")
 
+
+def _check_lengths_and_times(rows: dict[str, np.ndarray], trial_ids: np.ndarray, lengths: np.ndarray, dt: float,
+                             name: str) -> None:
+    """Refuses a trial shorter than ``MIN_TRIAL_STEPS`` or a time ``t`` off the grid ``step * dt``."""
     short = lengths < MIN_TRIAL_STEPS
     if short.any():
         k = int(np.argmax(short))
         raise InputError(f"{name}: trial {trial_ids[k]} is too short ({lengths[k]} steps, expected at least {MIN_TRIAL_STEPS})")
+    trial, step, t = rows["trial"], rows["step"], rows["t"]
     off_grid = ~np.isclose(t, step * dt, atol=1e-3 * dt, rtol=0)
     if off_grid.any():
         r = int(np.argmax(off_grid))
         raise InputError(f"{name}: non-uniform time step in trial {trial[r]} at step {step[r]} "
                          f"(t = {t[r]:.4f} s, expected {step[r] * dt:.4f} s for dt = {dt:g} s)")
-
-    t_max = int(lengths.max())
-    packed = np.full((n, 2, t_max, 6), np.nan)
-    trial_index = np.searchsorted(trial_ids, trial)
-    packed[trial_index, agent, step] = states
-    seg_first = starts.reshape(n, 2)
-    first = seg_first[:, 0]
-    return TrialSet(
-        states=packed,
-        lengths=lengths.astype(np.int64),
-        trial_ids=trial_ids.astype(np.int32),
-        roles=role[seg_first],
-        start_lanes=lane[seg_first],
-        drivers=driver[seg_first].astype(np.int32),
-        ic_dv=ic_dv[first],
-        ic_tco=ic_tco[first],
-        sources=source[first],
-        dt=dt,
-        metadata=meta,
-    )

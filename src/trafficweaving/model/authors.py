@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from .checkpoint import check_tensors
 from .cvae import CVAE, CVAEConfig
 
 LSTM = "multi_rnn_cell/cell_0/layer_norm_basic_lstm_cell"
@@ -84,8 +85,6 @@ def load_authors_model(path: str | Path) -> CVAE:
     the file and array ("tensor NAME") on a missing, misshapen, non-float or non-finite array, a
     non-positive standard deviation (the value checks of a checkpoint) or an unexpected extra array.
     """
-    from .checkpoint import check_tensors
-
     path = Path(path)
     expected = "the authors' weights.npz, arrays keyed by TensorFlow variable name (docs/model.md)"
     weights = _read_npz(path, expected)

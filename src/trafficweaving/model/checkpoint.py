@@ -1,4 +1,4 @@
-"""Model files: saving and loading checkpoints, and resolving ``--model`` specifications.
+"""The checkpoint file format: writing model files and reading them back, checked.
 
 A checkpoint is a ``torch.save`` dictionary readable with ``weights_only=True`` (no pickled code):
 ``format``, ``version`` (6), ``config`` (the :class:`CVAEConfig` fields), ``state_dict`` (parameters
@@ -15,7 +15,8 @@ check the zip entries' CRCs, and ``load_state_dict`` casts integer tensors into 
 failing later with a traceback: the tensors' digest, the config's types and ranges, each tensor's
 dtype, shape and finiteness, positive standard deviations and calibration (docs/model.md,
 docs/calibration.md), a mixture's weights (finite, positive, with a finite sum), and the types of
-the fields the commands read.
+the fields the commands read. Which file a ``--model`` value names, and loading it, is
+:mod:`~trafficweaving.model.registry`'s job.
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ import io
 import math
 import re
 import warnings
-from importlib import resources
 from pathlib import Path
 
 import torch
@@ -35,7 +35,8 @@ from ..atomic import atomic_write
 from ..errors import InputError
 from .cvae import CVAE, ROBOT_FUTURES, CVAEConfig
 from .gmm import HOLD_MIN_SIGMA, LOG_SIGMA_CLIP
-from .mixture import Mixture, companion_for, normalised
+from .mixture import Mixture, normalised
+from .train_config import TRAINABLE, TrainConfig
 
 FORMAT = "trafficweaving-cvae"
 VERSION = 6
@@ -48,11 +49,6 @@ MIXTURE_VERSION = 6
 """The first version whose mixtures are read: version 5 stored a mixture's weights as numbers,
 outside the SHA-256."""
 HASH_FIELD = "tensor_sha256"
-SHIPPED_MODELS = {  # --model name: file in the package (docs/model.md, "The shipped models")
-    "default": "default_cvae.pt",  # the authors' real-data model with hold modes, fine-tuned on the 30 real trials
-    "simulated-real": "simulated_real_cvae.pt",  # no authors' weights: simulated drivers, then the 30 real trials
-    "driver": "driver_cvae.pt",  # a driver: the default's recipe conditioned on a guess of the other car (docs/realism.md)
-}
 EXPECTED = "a trafficweaving model checkpoint (.pt written by `trafficweaving train`)"
 WRITTEN_BY_US = "expected a checkpoint as written by trafficweaving"
 
@@ -64,30 +60,6 @@ MAX_LATENT_VALUES = 4096
 POSITIVE_BUFFERS = {"feature_std": "positive standard deviations", "label_std": "positive standard deviations",
                     "latent_temperature": "a positive temperature", "output_scale": "a positive scale"}
 """Buffers that divide or scale and must be positive (model/cvae.py, model/calibrate.py)."""
-
-
-# ---------------------------------------------------------------- devices
-def choose_device(name: str = "auto") -> torch.device:
-    """``auto`` picks CUDA when available, else CPU; otherwise ``cpu``, ``cuda`` or ``cuda:N``.
-
-    Other torch device types (``meta``, ``mps``, ...) are refused here: the model code runs on CPU
-    and CUDA only, and a ``meta`` model would only fail later, far from the option.
-    """
-    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-    expected = (f"expected auto, cpu, cuda or cuda:N with N < {count}" if count else
-                "expected auto or cpu; cuda and cuda:N need CUDA, which is not available here")
-    if name == "auto":
-        return torch.device("cuda" if count else "cpu")
-    if name == "cpu":
-        return torch.device("cpu")
-    match = re.fullmatch(r"cuda(?::(\d+))?", name) if isinstance(name, str) else None
-    if match is None:
-        raise InputError(f"--device {name!r}: unknown device ({expected})")
-    if not count:
-        raise InputError(f"--device {name!r}: CUDA is not available ({expected})")
-    if match[1] is not None and int(match[1]) >= count:
-        raise InputError(f"--device {name!r}: no such CUDA device, this machine has {count} ({expected})")
-    return torch.device(name)
 
 
 # ---------------------------------------------------------------- the tensor digest
@@ -205,9 +177,7 @@ FIELD_CHECKS = {  # field: (test, what is expected); fields read by train, cross
 
 
 def _check_train_config(config: dict, path) -> None:
-    """Types of the known :class:`~trafficweaving.model.train.TrainConfig` fields (``--resume``)."""
-    from .train import TrainConfig  # here: train imports this module
-
+    """Types of the known :class:`~trafficweaving.model.train_config.TrainConfig` fields (``--resume``)."""
     for f in dataclasses.fields(TrainConfig):
         if f.name not in config or f.default is None:
             continue
@@ -364,8 +334,6 @@ def _cvae_from_checkpoint(payload: dict, path: str | Path) -> CVAE:
     check_tensors(state, expected, path)
     optimizer = payload.get("optimizer")
     if isinstance(optimizer, dict) and isinstance(optimizer.get("param_groups"), list):
-        from .train import TRAINABLE  # here: train imports this module
-
         trainable = (payload.get("train_config") or {}).get("trainable", "all")
         parts = TRAINABLE.get(trainable) if isinstance(trainable, str) else None
         count = sum(len(g.get("params", ())) for g in optimizer["param_groups"])
@@ -435,50 +403,3 @@ def load_checkpoint(path: str | Path) -> tuple[CVAE | Mixture, dict]:
     """The model of a checkpoint file (evaluation mode) and the checkpoint dictionary."""
     payload, model = _read(path)
     return model, payload
-
-
-def load_companion(spec: str, models: list[tuple[str, CVAE]]) -> CVAE:
-    """The ``--companion`` of ``mix`` and ``calibrate``: :func:`load_model` of ``spec``, checked
-    before any work against every model it will be mixed with, ``models`` ``[(name in messages,
-    model)]``, by :func:`~.mixture.companion_for`; InputError naming ``--companion`` otherwise."""
-    companion = load_model(spec)
-    for name, model in models:
-        try:
-            companion = companion_for(model, companion)
-        except ValueError as exc:
-            raise InputError(f"--companion {spec}: {exc}, for {name}") from None
-    return companion
-
-
-def shipped_model_path(name: str = "default") -> Path:
-    """The file of the model shipped inside the package as ``name`` (:data:`SHIPPED_MODELS`)."""
-    return Path(str(resources.files(__package__).joinpath(SHIPPED_MODELS[name])))
-
-
-def default_model_path() -> Path:
-    """The model ``--model default`` loads."""
-    return shipped_model_path("default")
-
-
-def model_path(spec: str) -> Path:
-    """The checkpoint file of a ``--model`` value that names one: a shipped model's name or a path."""
-    return shipped_model_path(spec) if spec in SHIPPED_MODELS else Path(spec)
-
-
-def load_model(spec: str, device: torch.device | str = "cpu") -> CVAE | Mixture:
-    """Resolve a ``--model`` value: a shipped model's name (:data:`SHIPPED_MODELS`),
-    ``authors:PATH`` or a checkpoint path."""
-    expected = f"expected a checkpoint path, {', '.join(SHIPPED_MODELS)}, or authors:PATH to the authors' weights.npz"
-    if not spec:
-        raise InputError(f"model spec is empty ({expected})")
-    if spec in SHIPPED_MODELS:
-        model, _ = load_checkpoint(shipped_model_path(spec))
-    elif spec.startswith("authors:"):
-        from .authors import load_authors_model
-
-        if not spec.removeprefix("authors:"):
-            raise InputError(f"model spec {spec!r} has no path after authors: ({expected})")
-        model = load_authors_model(spec.removeprefix("authors:"))
-    else:
-        model, _ = load_checkpoint(spec)
-    return model.to(device)

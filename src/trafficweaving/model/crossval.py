@@ -29,12 +29,14 @@ import torch
 from ..data.trials import TrialSet
 from ..errors import InputError
 from ..scenario import MIN_TRIAL_STEPS
-from .checkpoint import load_checkpoint, load_model, save_checkpoint
+from .checkpoint import load_checkpoint, save_checkpoint
 from .cvae import CVAE, CVAEConfig
 from .evaluate import evaluate
 from .exemplars import build_exemplars
 from .mixture import Mixture
-from .train import NO_EXEMPLARS, TrainConfig, initial_model, train
+from .registry import load_model
+from .train import NO_EXEMPLARS, initial_model, train
+from .train_config import TrainConfig
 
 MAX_FOLDS = 100
 """Most folds: each is a fit of its own (``nested`` adds k(k−1)/2 more), whose held-out scores are

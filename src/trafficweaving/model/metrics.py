@@ -26,6 +26,9 @@ instance's lane-change phase, and metrics of sampled human futures (positions).
 
 Samples come from ``p(z|x)`` and :meth:`CVAE.sample_actions` with one seeded generator on the
 model's device, so results are deterministic for given options and device.
+
+:func:`evaluate_file` is the ``evaluate`` command's workflow: a model spec and a dataset file in,
+the ``--json`` payload out.
 """
 
 from __future__ import annotations
@@ -39,15 +42,18 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
 
-from ..atomic import atomic_write
+from ..atomic import atomic_write, check_output_file
 from ..data.behaviour import HOLD_TOLERANCE, lane_change_events
-from ..data.trials import TrialSet
+from ..data.trials import TrialSet, load_trials
 from ..dynamics import future_states
-from ..scenario import DT, HORIZON
+from ..errors import InputError
+from ..scenario import DT, HORIZON, MIN_TRIAL_STEPS
 from .cvae import ACCEL, CVAE
+from .device import choose_device
 from .evaluate import Evaluation, evaluate_tensors
-from .exemplars import ExemplarSet, ExemplarTensors
-from .mixture import Mixture
+from .exemplars import ExemplarSet, ExemplarTensors, build_exemplars
+from .mixture import Mixture, describe
+from .registry import load_model
 
 DIRECTIONS = ("x", "y")
 HORIZON_STEPS = (5, 10, HORIZON)
@@ -294,3 +300,30 @@ def evaluate_instances(model: CVAE | Mixture, trials: TrialSet, exemplars: Exemp
         evaluation=evaluation, sampled=sampled, covered=covered, min_ade=min_ade, min_fde=min_fde, held=held,
         samples=samples, ade_samples=ade_samples, levels=tuple(levels),
     )
+
+
+def evaluate_file(model: str, data: str | os.PathLike, samples: int = 50, coverage_samples: int = 100,
+                  ade_samples: int = 20, max_sampled: int | None = 5000, seed: int = 0, device: str = "auto",
+                  per_instance: str | os.PathLike | None = None) -> tuple[dict, str]:
+    """``evaluate``: every metric of ``model`` (a model spec) on every prediction instance of the
+    dataset file ``data`` (:func:`evaluate_instances`; ``samples`` latent samples for the sampled
+    NLLs, ``coverage_samples`` and ``ade_samples`` futures on at most ``max_sampled`` instances),
+    each instance's values also written to ``per_instance`` (Parquet) when given; the output path is
+    checked before anything is loaded. Returns the ``--json`` payload (:meth:`InstanceMetrics.summary`'s
+    keys, then ``model``, ``variant``, ``data``, ``seed``) and the model described for people
+    (:func:`~.mixture.describe`)."""
+    per_instance = check_output_file(per_instance, "--per-instance") if per_instance is not None else None
+    loaded = load_model(model, choose_device(device))
+    trials = load_trials(data)
+    exemplars = build_exemplars(trials)
+    if len(exemplars) == 0:
+        raise InputError(f"{data}: no prediction instances (expected human agents in trials of at least "
+                         f"{MIN_TRIAL_STEPS} steps)")
+    metrics = evaluate_instances(loaded, trials, exemplars, samples=coverage_samples, ade_samples=ade_samples,
+                                 max_sampled=max_sampled, nll_samples=samples, seed=seed)
+    result = metrics.summary()
+    if per_instance is not None:
+        metrics.write_parquet(per_instance, {"model": model, "data": str(data), "seed": seed, "samples": samples,
+                                             "coverage_samples": coverage_samples, "ade_samples": ade_samples})
+    payload = {**result, "model": model, "variant": loaded.config.name, "data": str(data), "seed": seed}
+    return payload, describe(loaded)

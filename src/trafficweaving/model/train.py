@@ -27,58 +27,15 @@ from tqdm import tqdm
 from ..data.trials import TrialSet
 from ..errors import InputError
 from ..scenario import MIN_TRIAL_STEPS, STATE_NAMES
-from .checkpoint import model_from_checkpoint, model_path, read_checkpoint, save_checkpoint
-from .mixture import Mixture, conditioned_on
+from .authors import load_authors_model
+from .checkpoint import model_from_checkpoint, read_checkpoint, save_checkpoint
 from .cvae import CVAE, Batch, CVAEConfig
 from .evaluate import evaluate_tensors
 from .exemplars import ExemplarSet, build_exemplars, split_by_trial, state_statistics
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Optimisation settings; defaults are the paper's and the authors'."""
-
-    steps: int = 50_000
-    batch_size: int = 32
-    latent_samples: int = 3
-    lr_initial: float = 1e-3
-    lr_final: float = 1e-5
-    lr_decay: float = 0.9999
-    clip_value: float = 1.0
-    temperature_initial: float = 2.0
-    temperature_final: float = 0.001
-    temperature_decay: float = 0.9999
-    kl_floor: float = 0.07
-    beta_min: float = 1e-4
-    beta_crossover: float = 8000.0
-    beta_width: float = 8000.0 / 6.0
-    input_noise: float = 0.05
-    recurrent_dropout: float = 0.25  # keep probability 0.75
-    p_z_dropout: float = 0.1  # keep probability 0.9
-    scheduled_sampling: float = 0.1
-    validation_fraction: float = 0.2
-    validate_every: int = 1000
-    validation_exemplars: int = 2048  # periodic validation uses a fixed subset; the final one uses all
-    checkpoint_every: int = 1000
-    seed: int = 0
-    hold_width_lr: float = 1e-2  # constant learning rate of the hold variant's two widths (log s)
-    hold_lr: float = 0.0  # constant learning rate of the hold variant's mode logits (0: the main learning rate)
-    objective: str = "auto"  # "elbo": the paper's (needs q); "exact": -log Σ_z p(z|x) p(y|x,z); "auto": elbo if the model has q
-    trainable: str = "all"  # which parts learn (TRAINABLE)
-    robot_future: str | None = None  # the model's conditioning (CVAEConfig.robot_future); None: the init's, or recorded
-    schedule_start: int = 0  # step at which the KL-weight and temperature schedules start (fine-tuning)
-    patience: int = 0  # early stopping: validations without improvement before stopping (0: off)
-
-
-OBJECTIVES = ("auto", "elbo", "exact")
-TRAINABLE = {  # name: the CVAE submodules that learn (None: every parameter)
-    "all": None,
-    "decoder": ("decoder_initial_state", "decoder", "gmm", "hold"),
-    "hold": ("hold",),
-}
-
-FINE_TUNING = {"lr_initial": 1e-4, "validate_every": 50, "checkpoint_every": 50}
-"""Defaults of a fine-tuning run (``train --init``) that differ from training from scratch."""
+from .mixture import Mixture, conditioned_on
+from .registry import model_path
+from .spec import parse_model_spec
+from .train_config import OBJECTIVES, TRAINABLE, TrainConfig
 
 
 def learning_rate(tc: TrainConfig, step: int) -> float:
@@ -257,10 +214,9 @@ def initial_model(init: str | Path, variant: str | None, robot_future: str | Non
     (e.g. ``default``) starts from its first component, the one trained on real trials; its mixture
     weight, like the calibration, is chosen again by ``calibrate``. Another variant than ``variant`` (None: any)
     is refused."""
-    from .authors import load_authors_model
-
-    if str(init).startswith("authors:"):
-        payload, model = {}, load_authors_model(str(init).removeprefix("authors:"))
+    spec = parse_model_spec(str(init))
+    if spec.kind == "authors":
+        payload, model = {}, load_authors_model(spec.path)
     else:
         payload = read_checkpoint(model_path(str(init)))
         model = model_from_checkpoint(payload, init)
@@ -292,29 +248,23 @@ def init_model(init: str | Path, variant: str | None, train_ex: ExemplarSet, obj
     return model, provenance
 
 
-def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae", tc: TrainConfig = TrainConfig(),
-          resume: str | Path | None = None, device: torch.device | str = "cpu",
-          progress: bool = True, log: Callable[[str], None] = print, init: str | Path | None = None,
-          validation: TrialSet | None = None,
-          on_validate: Callable[[int, CVAE], None] | None = None) -> TrainResult:
-    """Train a ``variant`` model on ``trials`` and write checkpoints to ``out`` (every
-    ``checkpoint_every`` steps and at the end; None: no files). With ``resume``, continue the run
-    saved in that checkpoint (its configurations are used; the data must be the same). With
-    ``init``, fine-tune that checkpoint's model (``variant`` None: whatever it is). ``validation``
-    replaces the split of ``trials``; ``on_validate(step, model)`` is called after each validation
-    (without a validation set, at the steps a validation would run)."""
-    device = torch.device(device)
-    if tc.objective not in OBJECTIVES:
-        raise InputError(f"unknown objective {tc.objective!r} (expected one of {', '.join(OBJECTIVES)})")
-    payload = read_checkpoint(resume) if resume else None
-    if payload is not None:
-        if "train_config" not in payload or "optimizer" not in payload:
-            raise InputError(f"{resume}: not a training checkpoint (expected one written during `trafficweaving train`)")
-        known = {f.name for f in fields(TrainConfig)}
-        tc = TrainConfig(**{**{k: v for k, v in payload["train_config"].items() if k in known}, "steps": tc.steps})
+def _resumed(resume: str | Path | None, tc: TrainConfig) -> tuple[dict | None, TrainConfig]:
+    """The training checkpoint ``resume`` (None: none) and the configuration the run continues
+    with: the checkpoint's, with ``tc``'s ``steps``."""
+    if not resume:
+        return None, tc
+    payload = read_checkpoint(resume)
+    if "train_config" not in payload or "optimizer" not in payload:
+        raise InputError(f"{resume}: not a training checkpoint (expected one written during `trafficweaving train`)")
+    known = {f.name for f in fields(TrainConfig)}
+    return payload, TrainConfig(**{**{k: v for k, v in payload["train_config"].items() if k in known}, "steps": tc.steps})
 
-    train_ex, val_ex, statistics = prepare_data(trials, tc, validation)
-    fingerprint = train_ex.fingerprint()
+
+def _start(payload: dict | None, resume, init, variant: str | None, tc: TrainConfig, train_ex: ExemplarSet,
+           fingerprint: str, statistics: tuple[np.ndarray, np.ndarray], device: torch.device
+           ) -> tuple[CVAE, TrainConfig, dict]:
+    """The model a run starts from (resumed, fine-tuned from ``init``, or new), the configuration
+    it runs (``schedule_start`` and ``objective`` resolved) and the checkpoint fields it carries on."""
     extra = {}
     if payload is not None:
         if payload.get("data_fingerprint") != fingerprint:
@@ -332,6 +282,75 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
         model = CVAE(config).to(device).set_standardisation(*statistics)
     if tc.objective == "auto":
         tc = replace(tc, objective="elbo" if model.config.has_q else "exact")
+    return model, tc, extra
+
+
+def _start_line(model: CVAE, train_ex: ExemplarSet, val_ex: ExemplarSet | None, fine_tuning: bool, step: int,
+                tc: TrainConfig, device: torch.device) -> str:
+    """The log line that opens a run: exemplars, trials, steps and device."""
+    count = lambda ex: "no" if ex is None else f"{len(ex)}"  # noqa: E731
+    trials_of = lambda ex: 0 if ex is None else len(np.unique(ex.stream_trial))  # noqa: E731
+    return (f"{'fine-tuning' if fine_tuning else 'training'} {model.config.name}: {count(train_ex)} training / "
+            f"{count(val_ex)} validation exemplars from {trials_of(train_ex)} / {trials_of(val_ex)} trials, "
+            f"steps {step}..{tc.steps} on {device}")
+
+
+def _step(model: CVAE, optimizer: torch.optim.Optimizer, batch: Batch, tc: TrainConfig, step: int
+          ) -> tuple[torch.Tensor, dict]:
+    """One optimisation step at ``step`` on the standardised minibatch ``batch`` (noise added
+    here): the loss and its parts (:func:`loss_terms`); InputError when the loss is not finite."""
+    model.train()
+    optimizer.param_groups[0]["lr"] = learning_rate(tc, step)
+    batch = _noisy(batch, tc.input_noise, label_noise(tc, model.config))
+    loss, parts = loss_terms(model, batch, tc, step)
+    if not torch.isfinite(loss):
+        raise InputError(f"training diverged at step {step} (loss {loss.item()}; expected a smaller learning rate "
+                         f"than {learning_rate(tc, step):.3g})")
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_value_(model.parameters(), tc.clip_value)
+    optimizer.step()
+    return loss, parts
+
+
+class _EarlyStopping:
+    """Early stopping on the validation NLL (``patience`` > 0): the best NLL so far, its ``step``
+    and the model's weights then."""
+
+    def __init__(self, tc: TrainConfig):
+        self.patience, self.every = tc.patience, tc.validate_every
+        self.nll, self.step, self.weights = math.inf, None, None
+
+    def stop(self, step: int, nll: float, model: CVAE, log: Callable[[str], None]) -> bool:
+        """Record the validation NLL ``nll`` at ``step``; whether to stop."""
+        if self.patience <= 0:
+            return False
+        if nll < self.nll:
+            self.nll, self.step, self.weights = nll, step, {k: v.clone() for k, v in model.state_dict().items()}
+        elif (step - self.step) >= self.patience * self.every:
+            log(f"early stopping at step {step}: no improvement since step {self.step} ({self.nll:.3f})")
+            return True
+        return False
+
+
+def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae", tc: TrainConfig = TrainConfig(),
+          resume: str | Path | None = None, device: torch.device | str = "cpu",
+          progress: bool = True, log: Callable[[str], None] = print, init: str | Path | None = None,
+          validation: TrialSet | None = None,
+          on_validate: Callable[[int, CVAE], None] | None = None) -> TrainResult:
+    """Train a ``variant`` model on ``trials`` and write checkpoints to ``out`` (every
+    ``checkpoint_every`` steps and at the end; None: no files). With ``resume``, continue the run
+    saved in that checkpoint (its configurations are used; the data must be the same). With
+    ``init``, fine-tune that checkpoint's model (``variant`` None: whatever it is). ``validation``
+    replaces the split of ``trials``; ``on_validate(step, model)`` is called after each validation
+    (without a validation set, at the steps a validation would run)."""
+    device = torch.device(device)
+    if tc.objective not in OBJECTIVES:
+        raise InputError(f"unknown objective {tc.objective!r} (expected one of {', '.join(OBJECTIVES)})")
+    payload, tc = _resumed(resume, tc)
+    train_ex, val_ex, statistics = prepare_data(trials, tc, validation)
+    fingerprint = train_ex.fingerprint()
+    model, tc, extra = _start(payload, resume, init, variant, tc, train_ex, fingerprint, statistics, device)
     train_data = train_ex.standardised(model)  # fine-tuning keeps the initial model's standardisation
     val_data = None if val_ex is None else val_ex.standardised(model)
     if val_data is not None:
@@ -344,56 +363,39 @@ def train(trials: TrialSet, out: str | Path | None, variant: str | None = "cvae"
         step, history = int(payload["step"]), [tuple(h) for h in payload.get("history", [])]
         torch.set_rng_state(payload["rng"])
     minibatch = _MinibatchOrder(len(train_data), tc.batch_size, tc.seed)
-    count = lambda ex: "no" if ex is None else f"{len(ex)}"  # noqa: E731
-    trials_of = lambda ex: 0 if ex is None else len(np.unique(ex.stream_trial))  # noqa: E731
-    log(f"{'fine-tuning' if 'init' in extra else 'training'} {model.config.name}: {count(train_ex)} training / "
-        f"{count(val_ex)} validation exemplars from {trials_of(train_ex)} / {trials_of(val_ex)} trials, "
-        f"steps {step}..{tc.steps} on {device}")
+    log(_start_line(model, train_ex, val_ex, "init" in extra, step, tc, device))
 
     def checkpoint(path):
         if path is not None:
             save_checkpoint(path, model, step=step, history=history, data_fingerprint=fingerprint, **extra,
                             train_config=asdict(tc), optimizer=optimizer.state_dict(), rng=torch.get_rng_state())
 
-    best = (math.inf, None, None)  # (validation NLL, step, weights) for early stopping
+    stopping = _EarlyStopping(tc)
     start_step, start_time = step, time.perf_counter()
     bar = tqdm(total=tc.steps, initial=step, disable=not progress, desc=f"train {model.config.name}", unit="step")
     while step < tc.steps:
-        model.train()
-        optimizer.param_groups[0]["lr"] = learning_rate(tc, step)
-        batch = _noisy(train_data.batch(minibatch(step).to(device)), tc.input_noise, label_noise(tc, model.config))
-        loss, parts = loss_terms(model, batch, tc, step)
-        if not torch.isfinite(loss):
-            raise InputError(f"training diverged at step {step} (loss {loss.item()}; expected a smaller learning rate "
-                             f"than {learning_rate(tc, step):.3g})")
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_value_(model.parameters(), tc.clip_value)
-        optimizer.step()
+        loss, parts = _step(model, optimizer, train_data.batch(minibatch(step).to(device)), tc, step)
         step += 1
         bar.update(1)
-        if val_data is not None and (step % tc.validate_every == 0 or step == tc.steps):
+        due = step % tc.validate_every == 0 or step == tc.steps
+        if val_data is not None and due:
             val = evaluate_tensors(model, val_data, index=val_subset).summary()["nll_exact"]
             history.append((step, val))
             bar.set_postfix(loss=f"{loss.item():.2f}", kl=f"{parts['kl']:.2f}", val_nll=f"{val:.3f}")
             if on_validate is not None:
                 on_validate(step, model)
-            if tc.patience > 0:
-                if val < best[0]:
-                    best = (val, step, {k: v.clone() for k, v in model.state_dict().items()})
-                elif (step - best[1]) >= tc.patience * tc.validate_every:
-                    log(f"early stopping at step {step}: no improvement since step {best[1]} ({best[0]:.3f})")
-                    break
-        elif on_validate is not None and (step % tc.validate_every == 0 or step == tc.steps):
+            if stopping.stop(step, val, model, log):
+                break
+        elif on_validate is not None and due:
             on_validate(step, model)  # no validation set: the caller scores the model itself
         if step % tc.checkpoint_every == 0 or step == tc.steps:
             checkpoint(out)
     bar.close()
     elapsed = time.perf_counter() - start_time
     steps_per_second = (step - start_step) / max(elapsed, 1e-9)
-    if best[2] is not None:
-        model.load_state_dict(best[2])
-        step = best[1]
+    if stopping.weights is not None:
+        model.load_state_dict(stopping.weights)
+        step = stopping.step
     final = None if val_data is None else evaluate_tensors(model, val_data).summary()
     checkpoint(out)
-    return TrainResult(model.eval(), step, history, final, steps_per_second, best[1])
+    return TrainResult(model.eval(), step, history, final, steps_per_second, stopping.step)

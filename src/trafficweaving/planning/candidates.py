@@ -2,11 +2,11 @@
 15-step horizon, the first one fixed, so ``8^4 = 4096`` sequences of 15 robot states.
 
 An action is a longitudinal acceleration held for the window and a lateral target lane, steered
-to by :mod:`.steering`. How an action moves the robot is a :class:`Motion`: the paper's
-(:data:`MOTIONS` ``"paper"``), or ``"comfort"``, whose accelerations, jerks and lane changes keep
-to nuPlan's comfort limits (docs/closed_loop.md). State convention (as in the authors' recordings of their robot): the
-``xdd`` stored at step ``k`` is the acceleration applied from ``k`` to ``k+1``; ``xd`` is
-integrated with Euler and ``x`` with the trapezoid rule.
+to by :mod:`.steering`. How an action moves the robot is the candidates' :class:`Kinematics`
+(:data:`KINEMATICS`): the paper's, or ``"comfort"``, within the closed-loop score's comfort
+limits (:data:`trafficweaving.sim.score.COMFORT_LIMITS`). State convention (as in the authors'
+recordings of their robot): the ``xdd`` stored at step ``k`` is the acceleration applied from
+``k`` to ``k+1``; ``xd`` is integrated with Euler and ``x`` with the trapezoid rule.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ WINDOWS = HORIZON // STEPS_PER_WINDOW
 
 
 def acceleration_indices(actions: np.ndarray | int) -> np.ndarray | int:
-    """The acceleration index (into a :class:`Motion`'s ``accelerations``) of action indices ``actions``."""
+    """The acceleration index (into a :class:`Kinematics`' ``accelerations``) of action indices ``actions``."""
     return actions // len(LANES)
 
 
@@ -55,7 +55,7 @@ class Action:
 
 
 @dataclass(frozen=True)
-class Motion:
+class Kinematics:
     """How the candidates' actions move the robot: the longitudinal ``accelerations`` (m/s², one
     per acceleration index of :class:`Action`; the first is 0, holding the speed), reached from the
     present acceleration at most ``jerk`` m/s³ (None: at once, and held through the window, as in
@@ -73,36 +73,33 @@ class Motion:
 
     @property
     def hardest_braking(self) -> float:
-        """The motion's hardest braking, m/s² (positive)."""
+        """The hardest braking, m/s² (positive)."""
         return -min(self.accelerations)
 
     def steer(self, state: np.ndarray, target: np.ndarray, times: np.ndarray) -> np.ndarray:
         """Lateral states ``[..., len(times), 3]`` (y, yd, ydd) at ``times`` (s) from ``state [..., 3]``
-        steering to the lane centre ``target [...]`` (m) as this motion does."""
+        steering to the lane centre ``target [...]`` (m) as these kinematics do."""
         if self.lateral_limits is not None:
             return jerk_limited_steer(state, target, times, *self.lateral_limits, self.min_steering_time)
         return steer(state, target, times, self.steering_weight, self.min_steering_time)[..., :3]
 
 
 SETTLING_TIME = 0.6
-"""Shortest lateral manoeuvre (s) of the settling motions: two windows, six executed steps."""
-_COMFORT_MOTION = Motion((0.0, 2.0, -2.0, -4.0), 4.0, min_steering_time=SETTLING_TIME, lateral_limits=(4.5, 7.0))
-MOTIONS = {
-    "paper": Motion(ACCELERATIONS, None, JERK_WEIGHT),
-    "settled": Motion(ACCELERATIONS, None, JERK_WEIGHT, SETTLING_TIME),
-    "comfort": _COMFORT_MOTION,
-    "safety": replace(_COMFORT_MOTION, accelerations=ACCELERATIONS, jerk=None),
+"""Shortest lateral manoeuvre (s) of the settled kinematics: two windows, six executed steps."""
+_COMFORT_KINEMATICS = Kinematics((0.0, 2.0, -2.0, -4.0), 4.0, min_steering_time=SETTLING_TIME, lateral_limits=(4.5, 7.0))
+KINEMATICS = {
+    "paper": Kinematics(ACCELERATIONS, None, JERK_WEIGHT),
+    "settled": Kinematics(ACCELERATIONS, None, JERK_WEIGHT, SETTLING_TIME),
+    "comfort": _COMFORT_KINEMATICS,
+    "safety": replace(_COMFORT_KINEMATICS, accelerations=ACCELERATIONS, jerk=None),
 }
-"""The paper's motion (its lane change from rest takes 2.0 s and peaks at 6.1 m/s² and 31 m/s³
-sideways); the same with lateral manoeuvres of at least :data:`SETTLING_TIME` (``settled``: no
-chatter on the lane centre, :mod:`.steering`); and one within nuPlan's comfort limits
-(longitudinal acceleration −4.05…2.40 m/s², lateral 4.89 m/s², longitudinal jerk 4.13 m/s³, total
-jerk 8.37 m/s³): ramps at 4 m/s³, and time-optimal lateral manoeuvres of at least
-:data:`SETTLING_TIME` within 4.5 m/s² and 7.0 m/s³ (a lane change from rest takes 2.7 s, across
-the divider in half of it), within the total
-jerk with a longitudinal ramp at the same time, from any state, a lane change turned back included;
-and ``safety``: the settled motion's accelerations with the comfort motion's steering, to brake as
-hard as the settled motion can while keeping to the comfort limits sideways."""
+"""The candidates' kinematics: ``paper`` (a lane change from rest takes 2.0 s, peaking at
+6.1 m/s² and 31 m/s³ sideways); ``settled``, the same with lateral manoeuvres of at least
+:data:`SETTLING_TIME` (no chatter on the lane centre); ``comfort``, within the comfort limits of
+:data:`trafficweaving.sim.score.COMFORT_LIMITS` from any state: accelerations 0, +2, −2, −4 m/s²
+ramped at 4 m/s³, time-optimal lateral manoeuvres within 4.5 m/s² and 7.0 m/s³ (a lane change
+from rest takes 2.7 s); ``safety``, the settled accelerations with the comfort steering, to brake
+as hard as ``settled`` while keeping to the comfort limits sideways (docs/planner.md)."""
 
 N_ACTIONS = len(ACCELERATIONS) * len(LANES)
 """Actions per window (8)."""
@@ -129,9 +126,9 @@ def action_sequences(first: int, windows: int = WINDOWS) -> np.ndarray:
     return np.concatenate([np.full((len(free), 1), first), free], axis=1)
 
 
-def rollout(present: np.ndarray, actions: np.ndarray, motion: Motion = MOTIONS["paper"]) -> np.ndarray:
+def rollout(present: np.ndarray, actions: np.ndarray, kinematics: Kinematics = KINEMATICS["paper"]) -> np.ndarray:
     """Robot states ``[C, 3·W, 6]`` after ``present [6]`` under action sequences ``actions [C, W]``
-    moving as ``motion``.
+    moving as ``kinematics``.
 
     The lateral boundary-value problem is solved once per distinct prefix of lane choices (at most
     ``len(LANES)^W`` solves), not once per candidate.
@@ -141,11 +138,11 @@ def rollout(present: np.ndarray, actions: np.ndarray, motion: Motion = MOTIONS["
     c, w = actions.shape
     steps = STEPS_PER_WINDOW * w
     # longitudinal: acceleration applied from each step (acc [C, steps], from t+k), Euler velocity, trapezoid position
-    acc = np.repeat(np.asarray(motion.accelerations)[acceleration_indices(actions)], STEPS_PER_WINDOW, axis=1)
-    if motion.jerk is not None:  # from the present acceleration towards each window's, at most jerk·DT a step
+    acc = np.repeat(np.asarray(kinematics.accelerations)[acceleration_indices(actions)], STEPS_PER_WINDOW, axis=1)
+    if kinematics.jerk is not None:  # from the present acceleration towards each window's, at most jerk·DT a step
         acc[:, 0] = present[4]
         for k in range(1, steps):
-            acc[:, k] = acc[:, k - 1] + np.clip(acc[:, k] - acc[:, k - 1], -motion.jerk * DT, motion.jerk * DT)
+            acc[:, k] = acc[:, k - 1] + np.clip(acc[:, k] - acc[:, k - 1], -kinematics.jerk * DT, kinematics.jerk * DT)
     x, xd = robot_longitudinal(np.full(c, present[0]), np.full(c, present[2]), acc)  # at t+1..t+steps
     xdd = np.concatenate([acc[:, 1:], acc[:, -1:]], axis=1)  # stored at t+k: applied from t+k (last: held)
 
@@ -159,7 +156,7 @@ def rollout(present: np.ndarray, actions: np.ndarray, motion: Motion = MOTIONS["
     for k in range(w):
         codes = parent * base + lanes[:, k]  # prefix code after window k
         unique, inverse = np.unique(codes, return_inverse=True)
-        path = motion.steer(starts[unique // base], targets[unique % base], times)  # [P, 3, 3]
+        path = kinematics.steer(starts[unique // base], targets[unique % base], times)  # [P, 3, 3]
         lateral[:, STEPS_PER_WINDOW * k: STEPS_PER_WINDOW * (k + 1)] = path[inverse]
         starts = np.zeros((base * (unique.max() + 1), 3))
         starts[unique] = path[:, -1]
@@ -167,8 +164,8 @@ def rollout(present: np.ndarray, actions: np.ndarray, motion: Motion = MOTIONS["
     return np.stack([x, lateral[..., 0], xd, lateral[..., 1], xdd, lateral[..., 2]], axis=-1)
 
 
-def robot_candidates(present: np.ndarray, first: int, motion: Motion = MOTIONS["paper"]) -> Candidates:
+def robot_candidates(present: np.ndarray, first: int, kinematics: Kinematics = KINEMATICS["paper"]) -> Candidates:
     """The :data:`N_CANDIDATES` candidates from the robot's ``present [6]`` state with window 0
-    fixed to ``first``, moving as ``motion``."""
+    fixed to ``first``, moving as ``kinematics``."""
     actions = action_sequences(first)
-    return Candidates(rollout(present, actions, motion), actions)
+    return Candidates(rollout(present, actions, kinematics), actions)

@@ -23,7 +23,8 @@ from ..errors import InputError
 from ..scenario import LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
 from .candidates import STEPS_PER_WINDOW, Action, rollout
 from .costs import Cost, PaperCost
-from .planner import Budget, Mode, Plan, Planner, check_cost, plan_options
+from .planner import Budget, Plan, Planner, check_cost, plan_options
+from .styles import DrivingStyle
 
 HOLD_STEPS = 8
 """Steps the robot holds its lane at constant speed before its first plan."""
@@ -35,8 +36,9 @@ class MPCPolicy:
     """Drives the robot car of one episode (``m = 1``): :meth:`reset`, then :meth:`act` every step.
 
     ``cost`` defaults to :class:`PaperCost` towards the lane the robot did not start in;
-    ``deadline`` (s) switches the planner to its real-time mode; ``budget`` sets the sample counts
-    otherwise (None: the planner's); ``hold_steps``: steps held before the first plan.
+    ``deadline`` (s) gives each plan that many seconds (:meth:`~.planner.Planner.plan`);
+    ``budget`` sets the sample counts otherwise (None: the planner's); ``hold_steps``: steps held
+    before the first plan.
     :attr:`plans` keeps every plan made since :meth:`reset` and :attr:`latencies` the seconds each
     took. Bad arguments raise :class:`~trafficweaving.errors.InputError`.
     """
@@ -52,7 +54,7 @@ class MPCPolicy:
         self.plans: list[Plan] = []
         self.plan_steps: list[int] = []  # the present step t of every plan
         self.latencies: list[float] = []
-        self.fallen_back: Mode | None = None  # the fallback mode this episode plans in (None: the planner's own)
+        self.fallen_back: DrivingStyle | None = None  # the fallback this episode plans in (None: the planner's style)
 
     def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
         """Start an episode from ``start [1, 2, 6]`` (both cars' states ``[x, y, xd, yd, xdd,
@@ -69,7 +71,7 @@ class MPCPolicy:
         self.cost = self.fixed_cost or PaperCost(goal_y=LANE_CENTRE_Y[goal])
         self.hold = Action.of(0.0, lane).index
         windows = -(-self.hold_steps // STEPS_PER_WINDOW)
-        self.queue = list(rollout(robot, np.full((1, windows), self.hold), self.planner.motion)[0, : self.hold_steps])
+        self.queue = list(rollout(robot, np.full((1, windows), self.hold), self.planner.kinematics)[0, : self.hold_steps])
         self.next_fixed = self.hold
         self.plans, self.plan_steps, self.latencies = [], [], []
         self.fallen_back = None
@@ -92,7 +94,7 @@ class MPCPolicy:
             robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: robot, human
             clock = time.perf_counter()
             plan = self.planner.plan(robot_first, self.next_fixed, self.cost, budget=self.budget, deadline=self.deadline,
-                                     mode=self.plan_mode(robot_first, self.next_fixed))
+                                     style=self.plan_style(robot_first, self.next_fixed))
             self.latencies.append(time.perf_counter() - clock)
             self.plans.append(plan)
             self.plan_steps.append(history.shape[2] - 1)
@@ -100,12 +102,12 @@ class MPCPolicy:
             self.queue = list(plan.robot[:STEPS_PER_WINDOW])
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
 
-    def plan_mode(self, history: np.ndarray, first_action: int) -> Mode:
-        """The mode of the plan from both cars' states ``history [t+1, 2, 6]`` (robot, human) with window 0
-        fixed to ``first_action``: the planner's, or a fallback from the first plan that needs it
-        to the end of the episode (:meth:`~.planner.Mode.fallback_for`; :attr:`fallen_back`), its
-        ``safety_fallback`` until a plan needs its ``fallback``."""
-        own = self.planner.mode
+    def plan_style(self, history: np.ndarray, first_action: int) -> DrivingStyle:
+        """The driving style of the plan from both cars' states ``history [t+1, 2, 6]`` (robot,
+        human) with window 0 fixed to ``first_action``: the planner's, or a fallback from the first
+        plan that needs it to the end of the episode (:meth:`~.styles.DrivingStyle.fallback_for`;
+        :attr:`fallen_back`), its ``safety_fallback`` until a plan needs its ``fallback``."""
+        own = self.planner.style
         if self.fallen_back is not own.fallback:  # once on the fallback, to the end
             needed = own.fallback_for(history, first_action, getattr(self.cost, "goal_y", None))
             self.fallen_back = self.fallen_back if needed is None else needed
@@ -145,7 +147,7 @@ class NonBlockingMPCPolicy(MPCPolicy):
                                             initializer=torch.set_num_threads, initargs=(threads,))
         self._pending: tuple[int, Future] | None = None  # (step it was made at, the plan's future)
         self.upcoming: list[int] = []  # the current plan's actions for the windows after the executing one
-        self.motion = planner.motion  # how the current plan moves the robot (its mode's motion)
+        self.kinematics = planner.kinematics  # how the current plan moves the robot (its style's kinematics)
         self.window = 0  # the action index of the window being executed
         self.late_steps: list[int] = []
 
@@ -154,7 +156,7 @@ class NonBlockingMPCPolicy(MPCPolicy):
         first (it draws from the generator being reseeded) and discarded."""
         self._drain()
         super().reset(rng, start, me)
-        self.upcoming, self.window, self.late_steps, self.motion = [], self.hold, [], self.planner.motion
+        self.upcoming, self.window, self.late_steps, self.kinematics = [], self.hold, [], self.planner.kinematics
 
     def act(self, history: np.ndarray) -> np.ndarray:
         """As :meth:`MPCPolicy.act` (``history [1, 2, t+1, 6]`` -> ``[1, 2]``), without waiting for
@@ -167,20 +169,20 @@ class NonBlockingMPCPolicy(MPCPolicy):
             t = history.shape[2] - 1
             plan = self._collect(t)
             if plan is not None:
-                self.upcoming, self.motion = [int(a) for a in plan.actions[1:]], plan.mode.motion
+                self.upcoming, self.kinematics = [int(a) for a in plan.actions[1:]], plan.style.kinematics
             self.window = self.upcoming.pop(0) if self.upcoming else Action.of(0.0, Action(self.window).lane).index
             robot_now = history[0, self.me, -1]
-            self.queue = list(rollout(robot_now, np.array([[self.window]]), self.motion)[0])
+            self.queue = list(rollout(robot_now, np.array([[self.window]]), self.kinematics)[0])
             if self._pending is None:
                 robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: a copy
-                mode = self.plan_mode(robot_first, self.window)
-                self._pending = (t, self._executor.submit(self._plan, robot_first, self.window, mode))
+                style = self.plan_style(robot_first, self.window)
+                self._pending = (t, self._executor.submit(self._plan, robot_first, self.window, style))
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
 
     def warm_up(self, history: np.ndarray, plans: int = 3) -> None:
         """Make ``plans`` plans from ``history [t+1, 2, 6]`` (robot, human) in the planner thread
-        and wait for them, so that a first real plan pays no lazy initialisation and the deadline
-        mode has measured the planner thread's speed. Nothing is kept."""
+        and wait for them, so that a first real plan pays no lazy initialisation and the planner
+        has measured the planner thread's speed for its deadline. Nothing is kept."""
         cost = self.fixed_cost or PaperCost(goal_y=LANE_CENTRE_Y[LANES[0]])
         for _ in range(validate.integer("plans", plans, 0)):
             self._executor.submit(self.planner.plan, history, 0, cost, budget=self.budget,
@@ -191,11 +193,11 @@ class NonBlockingMPCPolicy(MPCPolicy):
         """Whether a plan is running in the planner thread."""
         return self._pending is not None and not self._pending[1].done()
 
-    def _plan(self, robot_first: np.ndarray, first_action: int, mode: Mode) -> tuple[Plan, float]:
-        """One plan in ``mode`` (runs in the planner thread) and the seconds it took."""
+    def _plan(self, robot_first: np.ndarray, first_action: int, style: DrivingStyle) -> tuple[Plan, float]:
+        """One plan in ``style`` (runs in the planner thread) and the seconds it took."""
         clock = time.perf_counter()
         plan = self.planner.plan(robot_first, first_action, self.cost, budget=self.budget, deadline=self.deadline,
-                                 mode=mode)
+                                 style=style)
         return plan, time.perf_counter() - clock
 
     def _collect(self, t: int) -> Plan | None:

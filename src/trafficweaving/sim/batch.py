@@ -52,7 +52,7 @@ from .. import validate
 from ..atomic import atomic_write, check_output_file, check_output_folder, remove_stale_temporaries
 from ..data.trials import _short, load_trials
 from ..errors import InputError
-from ..model.checkpoint import choose_device
+from ..model.device import choose_device
 from ..planning.planner import Budget
 from ..scenario import LANES
 from .episodes import Episode, EpisodeSpec, run_episode

@@ -270,11 +270,21 @@ class DriverAgents:
     def act(self, own: np.ndarray, other: np.ndarray) -> np.ndarray:
         """Accelerations ``[m, 2]`` (``xdd, ydd``, m/s²) for the next step, given both cars' current
         states ``own``, ``other`` ``[m, 6]``."""
-        st, model, m = self.styles, self.model, len(own)
         gap, dv, other_acc = self._perceive(own, other)
-        x, v = own[:, 0], own[:, 2]
+        x = own[:, 0]
         urgency = np.clip((x + 90.0) / 70.0, 0.0, 1.0)  # 0 before x = -90 m, 1 from x = -20 m
+        margin, ahead, clear = self._decide(own, gap, dv, other_acc, urgency)
+        xdd = self._pedal(own[:, 2], gap, dv, other_acc, urgency, margin, ahead, clear)
+        self._steer(own)
+        return np.stack([xdd, self.ydd], axis=1)
 
+    def _decide(self, own: np.ndarray, gap: np.ndarray, dv: np.ndarray, other_acc: np.ndarray,
+                urgency: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Revise the intent and start the lane change where the gap is open for it; returns the
+        personal ``margin`` (m), the gap projected 1.5 s ``ahead`` (m) and whether it is ``clear``
+        for the intent, each ``[m]``."""
+        st = self.styles
+        x, v = own[:, 0], own[:, 2]
         # ---- is the gap open for my intent? (relative position projected 1.5 s ahead)
         margin = CAR_LENGTH + st.front_margin * (1.0 - 0.8 * urgency)
         ahead = gap + 1.5 * dv
@@ -290,8 +300,13 @@ class DriverAgents:
         self.lc_duration = np.where(start_change, hurried, self.lc_duration)
         self.lc_t = np.where(start_change, 0.0, self.lc_t)
         self.committed |= start_change
+        return margin, ahead, clear
 
-        # ---- longitudinal pedal command
+    def _pedal(self, v: np.ndarray, gap: np.ndarray, dv: np.ndarray, other_acc: np.ndarray, urgency: np.ndarray,
+               margin: np.ndarray, ahead: np.ndarray, clear: np.ndarray) -> np.ndarray:
+        """The longitudinal pedal command, held or adjusted; returns ``xdd`` ``[m]`` (m/s²) at speed
+        ``v`` ``[m]`` (m/s), with the rest as :meth:`_decide` returns them."""
+        st, model, m = self.styles, self.model, len(v)
         below_alert = v < SPEED_ALERT - 1.0
         # cruising: coast, with gentle throttle while well below the preferred speed
         cruise = np.where(below_alert & (v < st.preferred_speed - 1.0), st.cruise_throttle, 0.0)
@@ -328,10 +343,14 @@ class DriverAgents:
         touch = np.where(self.rng.random(m) < self.COAST_TOUCH_P, self.COAST_TOUCH_SD * self.rng.standard_normal(m), self.pedal)
         released = np.where(np.abs(self.pedal) > 2 * self.COAST_TOUCH_SD, 0.0, touch)
         self.pedal = np.where(adjust, np.where(command == 0.0, released, pressed), self.pedal)
-        xdd = np.clip(self.pedal + coasting_acceleration(v), -HARD_BRAKE, FULL_THROTTLE)
+        return np.clip(self.pedal + coasting_acceleration(v), -HARD_BRAKE, FULL_THROTTLE)
 
-        # ---- lateral: a slow drift towards the divider once past the personal earliest x (a lane
-        # change's slow start), then a minimum-jerk lane change tracked by held steering
+    def _steer(self, own: np.ndarray) -> None:
+        """The lateral control, held or adjusted into :attr:`ydd`: a slow drift towards the divider
+        once past the personal earliest x (a lane change's slow start), then a minimum-jerk lane
+        change tracked by held steering."""
+        st, model, m = self.styles, self.model, len(own)
+        x = own[:, 0]
         creeping = ~self.committed & (x > st.lane_change_earliest_x) & (self.creep < self.CREEP_MAX)
         self.creep = np.where(creeping, np.minimum(self.creep + self.CREEP_SPEED * DT, self.CREEP_MAX), self.creep)
         self.lc_t = np.where(self.committed, self.lc_t + DT, 0.0)
@@ -348,7 +367,6 @@ class DriverAgents:
         steered = (self.ydd + DT / (self.LATERAL_LAG + DT) * (wanted - self.ydd)
                    + model.steer_noise_sd * self.rng.standard_normal(m))
         self.ydd = np.where(adjust, np.clip(steered, -MAX_LATERAL_ACCEL, MAX_LATERAL_ACCEL), self.ydd)
-        return np.stack([xdd, self.ydd], axis=1)
 
     def _adjusting(self, error: np.ndarray, threshold: np.ndarray, hold_left: np.ndarray,
                    mean_hold: np.ndarray) -> np.ndarray:

@@ -14,7 +14,7 @@
   sim-agent benchmarks; ``rules`` puts the rule-based robot
   (:class:`~trafficweaving.sim.robots.RuleBasedRobot`) in the human's seat.
 
-:func:`human_agent` builds one from a spec string (:data:`HUMAN_SPECS`).
+:func:`human_agent` builds one from a spec string (:data:`HUMAN_SPECS`, :func:`parse_human_spec`).
 """
 
 from __future__ import annotations
@@ -32,9 +32,10 @@ from .. import validate
 from ..data.trials import INT32_MAX, TrialSet, _short, load_trials
 from ..dynamics import constant_acceleration_future, future_states
 from ..errors import InputError
-from ..model.checkpoint import load_model
 from ..model.cvae import CVAE
 from ..model.mixture import Mixture, facing
+from ..model.registry import load_model
+from ..model.spec import ModelSpec, parse_model_spec
 from ..planning.steering import steer
 from ..scenario import (CUTOFF_X, DT, HORIZON, MIN_HISTORY, SWAP_THRESHOLD_Y, across_divider, colliding, lane_centre_y,
                         lane_of, on_road)
@@ -412,26 +413,49 @@ def _replay_target(target: str) -> tuple[str, int | None]:
     return path, int(trial)
 
 
-def human_agent(spec: str, device: torch.device | str = "cpu", robot_plan: bool = False, other: str = "robot") -> Agent:
-    """The human agent of ``spec`` (:data:`HUMAN_SPECS`): ``synthetic`` (:class:`SampledDrivers`),
-    ``model:SPEC`` (:class:`ModelDriver` of :func:`~trafficweaving.model.checkpoint.load_model`'s
-    ``SPEC``, on ``device``; ``robot_plan`` and ``other``, who the other car is, as there) or ``replay:FILE[#K]`` (:class:`ReplayDriver`
-    of the Parquet dataset ``FILE``, trial id ``K`` or drawn per episode). InputError for an
-    unknown spec, a missing or invalid file, or ``robot_plan`` with a human that is not a model."""
+@dataclass(frozen=True)
+class HumanSpec:
+    """A parsed human spec (:data:`HUMAN_SPECS`): its ``kind`` (``synthetic``, ``rules``,
+    ``constant-velocity``, ``model`` or ``replay``); for ``model:SPEC`` the ``model`` it names;
+    for ``replay:FILE[#K]`` the dataset ``path`` and ``trial`` id ``K`` (None: drawn per episode)."""
+
+    kind: str
+    model: ModelSpec | None = None
+    path: str | None = None
+    trial: int | None = None
+
+
+def parse_human_spec(spec: str) -> HumanSpec:
+    """``spec`` as a :class:`HumanSpec`, nothing loaded (the ``SPEC`` of ``model:SPEC`` by
+    :func:`~trafficweaving.model.spec.parse_model_spec`); InputError for what is not a human spec."""
     if not isinstance(spec, str):
         raise InputError(f"human {_short(spec)} is not a spec (expected one of: {HUMAN_SPECS})")
     kind, _, target = spec.partition(":")
-    if robot_plan and kind != "model":
-        raise InputError(f"robot_plan applies only to model:SPEC humans, got human {spec!r}")
-    if spec == "synthetic":
-        return SampledDrivers()
-    if spec == "rules":
-        return RuleBasedRobot()
-    if spec == "constant-velocity":
-        return ConstantVelocityDriver()
+    if spec in ("synthetic", "rules", "constant-velocity"):
+        return HumanSpec(spec)
     if kind == "model" and target:
-        return ModelDriver(load_model(target, device), robot_plan=robot_plan, other=other)
+        return HumanSpec(kind, model=parse_model_spec(target))
     if kind == "replay" and target:
         path, trial = _replay_target(target)
-        return ReplayDriver(load_trials(path), trial)
+        return HumanSpec(kind, path=path, trial=trial)
     raise InputError(f"human {spec!r} is unknown (expected one of: {HUMAN_SPECS})")
+
+
+def human_agent(spec: str, device: torch.device | str = "cpu", robot_plan: bool = False, other: str = "robot") -> Agent:
+    """The human agent of ``spec`` (:func:`parse_human_spec`): ``synthetic`` (:class:`SampledDrivers`),
+    ``model:SPEC`` (:class:`ModelDriver` of :func:`~trafficweaving.model.registry.load_model`'s
+    ``SPEC``, on ``device``; ``robot_plan`` and ``other``, who the other car is, as there) or ``replay:FILE[#K]`` (:class:`ReplayDriver`
+    of the Parquet dataset ``FILE``, trial id ``K`` or drawn per episode). InputError for an
+    unknown spec, a missing or invalid file, or ``robot_plan`` with a human that is not a model."""
+    human = parse_human_spec(spec)
+    if robot_plan and human.kind != "model":
+        raise InputError(f"robot_plan applies only to model:SPEC humans, got human {spec!r}")
+    if human.kind == "synthetic":
+        return SampledDrivers()
+    if human.kind == "rules":
+        return RuleBasedRobot()
+    if human.kind == "constant-velocity":
+        return ConstantVelocityDriver()
+    if human.kind == "model":
+        return ModelDriver(load_model(human.model, device), robot_plan=robot_plan, other=other)
+    return ReplayDriver(load_trials(human.path), human.trial)

@@ -12,8 +12,8 @@ robot's car index), judged by the scenario's rules
 * ``success``: the robot swapped, no collision, both cars on the road and past the cutoff (the
   outcome is ``valid`` or ``no_lane_swap`` by the human alone);
 * ``robot_success``: the robot's own part of ``success``: it swapped, stayed on the road before
-  the cutoff, reached it and did not collide (the score's multipliers, :func:`closed_loop_score`,
-  all 1), whatever the human did (left the road, did not reach the cutoff);
+  the cutoff, reached it and did not collide (the score's multipliers all 1,
+  :func:`~.score.robot_succeeded`), whatever the human did (left the road, did not reach the cutoff);
 * ``collision``: the scenario's rule (``|Δx| < COLLISION_DX`` and ``|Δy| < COLLISION_DY`` at a
   recorded step); ``robot_at_fault``: a collision with the robot at fault, by nuPlan's at-fault
   rule (:func:`~trafficweaving.scenario.at_fault_collision`: the car behind in a rear-end
@@ -38,8 +38,8 @@ robot's car index), judged by the scenario's rules
   started in (:func:`lane_reversals`);
 * ``lateral_swings``: how often the robot's lateral acceleration changes sign (:func:`lateral_swings`;
   one lane change swings once: towards the other lane, then braking into it);
-* ``score``: the closed-loop score and its parts (:func:`closed_loop_score`, after nuPlan's:
-  Caesar et al., 2021; ``docs/closed_loop.md``).
+* ``score``: the closed-loop score and its parts (:func:`~.score.closed_loop_score`; its
+  definition, limits and weights: :mod:`trafficweaving.sim.score`).
 
 The planner's latencies (:func:`latency_summary`; seconds per plan, which vary between runs, so
 they are kept apart from the metrics above, which a run reproduces exactly) give ``plans``, ``median_s``, ``p99_s`` and
@@ -61,7 +61,8 @@ from scipy import stats
 
 from ..planning.costs import PaperCost
 from ..scenario import (COLLISION_DY, CUTOFF_X, DT, LANE_CENTRE_Y, LANE_DIVIDER_Y, REPLAN_PERIOD_S, VALIDITY_REASONS,
-                        at_fault_collision, check_validity, lane_of, on_road, swapped_before_cutoff, time_to_collision)
+                        at_fault_collision, check_validity, lane_of, swapped_before_cutoff)
+from .score import COMFORT_LIMITS, SCORE_WEIGHTS, closed_loop_score, robot_succeeded
 
 Z95 = float(stats.norm.ppf(0.975))
 """Two-sided 95 % standard normal quantile (1.96)."""
@@ -132,43 +133,8 @@ def episode_metrics(states: np.ndarray, length: int, robot: int, dt: float = DT)
     }
 
 
-# ---------------------------------------------------------------- the closed-loop score
-TTC_LIMIT_S = 0.95
-"""Time to collision a robot must keep at every step (nuPlan's ego TTC bound), s."""
-
-COMFORT_LIMITS = {"longitudinal_accel": (-4.05, 2.40), "lateral_accel": 4.89, "longitudinal_jerk": 4.13, "jerk": 8.37}
-"""nuPlan's comfort limits: longitudinal acceleration range and largest lateral acceleration
-(m/s²), largest longitudinal and total (vector norm) jerk (m/s³)."""
-
-SCORE_WEIGHTS = {"ttc": 5.0, "progress": 5.0, "comfort": 2.0}
-"""Weights of the score's averaged parts (nuPlan's closed-loop score weighs TTC and progress 5,
-comfort 2). Fixed once published, so that scores stay comparable."""
-
 REVERSAL_SPEED = 0.2
 """Lateral speed (m/s) above which the robot counts as moving sideways for :func:`lane_reversals`."""
-
-
-def comfort_violations_by_limit(accelerations: np.ndarray, dt: float = DT) -> dict[str, np.ndarray]:
-    """Per limit of :data:`COMFORT_LIMITS` (its key), the steps ``[T]`` (bool) at which
-    accelerations ``[T, 2]`` (m/s², ``[xdd, ydd]``) or their jerk (differences over ``dt``; none at
-    the first step) break it."""
-    low, high = COMFORT_LIMITS["longitudinal_accel"]
-    jerk = np.vstack([np.zeros((1, 2)), np.diff(accelerations, axis=0) / dt])
-    return {"longitudinal_accel": (accelerations[:, 0] < low) | (accelerations[:, 0] > high),
-            "lateral_accel": np.abs(accelerations[:, 1]) > COMFORT_LIMITS["lateral_accel"],
-            "longitudinal_jerk": np.abs(jerk[:, 0]) > COMFORT_LIMITS["longitudinal_jerk"],
-            "jerk": np.hypot(jerk[:, 0], jerk[:, 1]) > COMFORT_LIMITS["jerk"]}
-
-
-def comfort_violations(accelerations: np.ndarray, dt: float = DT) -> np.ndarray:
-    """Steps ``[T]`` (bool) at which accelerations ``[T, 2]`` (m/s², ``[xdd, ydd]``) or their jerk
-    break any of :data:`COMFORT_LIMITS` (:func:`comfort_violations_by_limit`)."""
-    return _any_limit(comfort_violations_by_limit(accelerations, dt))
-
-
-def _any_limit(by_limit: dict[str, np.ndarray]) -> np.ndarray:
-    """The steps ``[T]`` over any limit, from :func:`comfort_violations_by_limit`'s steps per limit."""
-    return np.logical_or.reduce(list(by_limit.values()))
 
 
 def lane_reversals(y: np.ndarray, yd: np.ndarray) -> int:
@@ -191,46 +157,6 @@ def lateral_swings(ydd: np.ndarray) -> int:
     ``|ydd| > SWING_ACCEL``: a steady lane change has one; dithering and chatter many."""
     signs = np.sign(ydd[np.abs(ydd) > SWING_ACCEL])
     return int((signs[1:] != signs[:-1]).sum())
-
-
-def robot_succeeded(score: dict) -> bool:
-    """Whether the robot did its part of an episode whose :func:`closed_loop_score` is ``score``:
-    every multiplier 1 (it swapped lanes before the cutoff, stayed on the road, reached the cutoff,
-    no collision)."""
-    return all(score["multipliers"].values())
-
-
-def closed_loop_score(states: np.ndarray, robot: int, outcome: str, robot_swapped: bool, crossed: int | None,
-                      dt: float = DT) -> dict:
-    """nuPlan's closed-loop score, adapted to this task, of one episode ``states [2, T, 6]``
-    (recorded steps only) for the robot car ``robot``: ``score`` in [0, 1] = the product of the
-    ``multipliers`` (each 0 or 1: ``no_collision``; ``on_road``: the robot on the road until it
-    reaches the cutoff; ``lane_swap``: the robot across before the cutoff; ``reaches_cutoff``: the
-    robot at the cutoff before the episode ends, nuPlan's "making progress") times the
-    :data:`SCORE_WEIGHTS` mean of ``ttc`` (1 when the time to collision, :func:`time_to_collision`,
-    stays at least :data:`TTC_LIMIT_S` at every step, else 0), ``progress`` (the mean of how much of
-    the road to the cutoff was left when the robot crossed the divider and of its mean speed until
-    the cutoff relative to its start speed, at most 1) and ``comfort`` (1 with no step over
-    :data:`COMFORT_LIMITS`, else 0); also ``comfort_violations`` (the robot's steps over them),
-    ``comfort_violations_by_limit`` (its steps over each limit) and ``steps``. ``crossed``: the
-    first step the robot is in the other lane (None: never)."""
-    me, x = states[robot], states[robot, :, 0]
-    before_cutoff = np.maximum.accumulate(x) < CUTOFF_X
-    multipliers = {"no_collision": outcome != "collision",
-                   "on_road": bool(on_road(me[before_cutoff, 1]).all()), "lane_swap": robot_swapped,
-                   "reaches_cutoff": bool(x.max() >= CUTOFF_X)}
-    ttc = time_to_collision(states[0], states[1])
-    road = CUTOFF_X - x[0]
-    swap_left = float(np.clip((CUTOFF_X - x[crossed]) / road, 0.0, 1.0)) if crossed is not None and road > 0 else 0.0
-    speed_kept = float(min(1.0, me[before_cutoff, 2].mean() / me[0, 2])) if me[0, 2] > 0 else 1.0
-    by_limit = comfort_violations_by_limit(me[:, 4:6], dt)
-    violations = _any_limit(by_limit)
-    parts = {"ttc": float(ttc.min() >= TTC_LIMIT_S), "progress": 0.5 * (swap_left + speed_kept),
-             "comfort": float(not violations.any())}
-    mean = sum(SCORE_WEIGHTS[k] * v for k, v in parts.items()) / sum(SCORE_WEIGHTS.values())
-    return {"score": float(all(multipliers.values())) * mean, "multipliers": multipliers, **parts,
-            "comfort_violations": int(violations.sum()),
-            "comfort_violations_by_limit": {k: int(v.sum()) for k, v in by_limit.items()}, "steps": len(violations)}
 
 
 # ---------------------------------------------------------------- aggregates
@@ -312,7 +238,7 @@ def _group(records: Sequence[dict]) -> dict:
 
 
 def _violations_by_limit(metrics: Sequence[dict]) -> dict | None:
-    """Per limit of :data:`COMFORT_LIMITS`, the robot's ``steps`` over it and the ``episodes`` with
+    """Per limit of :data:`~.score.COMFORT_LIMITS`, the robot's ``steps`` over it and the ``episodes`` with
     any; None when an episode's log predates the breakdown."""
     counts = [m["score"].get("comfort_violations_by_limit") for m in metrics]
     if any(c is None for c in counts):
@@ -338,7 +264,7 @@ def aggregate(records: Sequence[dict]) -> dict:
     ``score`` (t-interval), ``score_parts`` (the multipliers as rates, the averaged parts as means),
     ``lane_reversals`` (mean, and the rate of episodes with ``at_most_one``), ``lateral_swings`` and
     ``comfort_violation_steps`` (``count`` of the robot's steps over the limits, of ``steps``, and
-    ``by_limit``: per limit of :data:`COMFORT_LIMITS` the ``steps`` over it and the ``episodes``
+    ``by_limit``: per limit of :data:`~.score.COMFORT_LIMITS` the ``steps`` over it and the ``episodes``
     with any). Undefined values are None (strict JSON).
     """
     summary = _group(records)

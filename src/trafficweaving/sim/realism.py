@@ -32,11 +32,14 @@ from tqdm import tqdm
 
 from ..data.behaviour import HOLD_TOLERANCE, lane_change_events
 from ..data.stats import swap_step
-from ..data.trials import TrialSet
+from ..data.trials import TrialSet, load_trials
+from ..errors import InputError
+from ..model.crossval import out_of_fold_models
+from ..model.device import choose_device
 from ..model.exemplars import build_exemplars
 from ..scenario import (CUTOFF_X, DT, MIN_HISTORY, ROAD_Y_MAX, ROAD_Y_MIN, across_divider, at_fault_collision, colliding,
                         on_road, swapped_before_cutoff, time_to_collision)
-from .humans import ReplayedCar
+from .humans import HUMAN_SPECS, ModelDriver, ReplayedCar, human_agent
 from .world import Agent, run_episodes
 
 ROLLOUTS = 32
@@ -329,3 +332,44 @@ def realism(trials: TrialSet, agents: Callable[[np.ndarray, str], list[tuple[np.
         if len(part):
             parts.append(score_streams(part, roll_out(part, agent, rollouts, rng, progress), rollouts))
     return Realism.concatenate(parts)
+
+
+def realism_of(data: str, human: str | None = None, folds: str | None = None, rollouts: int = ROLLOUTS, seed: int = 0,
+               device: str = "cpu", progress: bool = False) -> dict:
+    """The realism summary (:meth:`Realism.summary`, with ``human``, ``data`` and ``seed``) of the
+    recorded trials in the file ``data``, driven by one of: ``human``, a human agent's spec, or
+    ``folds``, the folder of ``crossval --out`` fold models, each driving the trials it did not
+    train on (out-of-fold). ``device``: a model agent's device."""
+    if (human is None) == (folds is None):
+        raise InputError(f"realism needs one of --human SPEC ({HUMAN_SPECS}) or --folds DIR (out-of-fold models)")
+    device = choose_device(device)
+    if human is not None:
+        made = {}
+
+        def agent(other: str):
+            """The --human agent facing ``other``, made once."""
+            if other not in made:
+                try:
+                    made[other] = human_agent(human, device, other=other)
+                except InputError as exc:
+                    raise InputError(f"--human {human}: {exc}") from None
+            return made[other]
+
+        agent("robot")  # a bad --human fails before the data is read
+        agents = lambda ids, other: [(ids, agent(other))]  # noqa: E731
+    trials = load_trials(data)
+    if folds is not None:
+        models = out_of_fold_models(folds)
+        held = np.concatenate([np.asarray(ids) for _, ids in models])
+        missing = np.setdiff1d(trials.trial_ids[(trials.roles == "human").any(axis=1)], held)
+        if len(missing):
+            raise InputError(f"--folds {folds}: trial {missing[0]} of {data} is held out by no fold (expected "
+                             f"the folds of `trafficweaving crossval --out` on the same data)")
+        agents = lambda ids, other: [(np.asarray(h), ModelDriver(m.to(device), other=other)) for m, h in models]  # noqa: E731
+    try:
+        result = realism(trials, agents, rollouts=rollouts, seed=seed, progress=progress)
+    except InputError:
+        raise
+    except ValueError as exc:
+        raise InputError(f"{data}: {exc}") from None
+    return {"human": human or f"out-of-fold:{folds}", "data": str(data), "seed": seed, **result.summary()}

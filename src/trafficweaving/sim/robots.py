@@ -21,20 +21,20 @@ import torch
 
 from .. import validate
 from ..errors import InputError
-from ..model.checkpoint import choose_device, load_model
+from ..model.device import choose_device
+from ..model.registry import load_model
 from ..model.constant_velocity import ConstantVelocityHuman
 from ..model.predictor import HumanPredictor
 from ..planning.mpc import MPCPolicy
-from ..planning.planner import MODES, Budget, Planner
+from ..planning.planner import Budget, Planner
+from ..planning.styles import STYLES
 from ..scenario import CAR_LENGTH, COLLISION_DY, DT, LANE_CENTRE_Y, LANES, ROAD_END_X, STATE_NAMES, lane_of
 from .world import Agent
 
-PLANNER_MODES = {"planner": "comfort-first", "planner-decisive": "decisive", "planner-paper": "paper",
-                 "planner-comfort": "comfort", "planner-cautious": "cautious", "planner-cv": "decisive"}
-"""The planning robots and their planner's mode (:data:`~trafficweaving.planning.planner.MODES`):
-the default ``planner`` is comfortable first (docs/closed_loop.md); ``planner-paper`` is the paper's exactly."""
-ROBOT_SPECS = (*PLANNER_MODES, "rules")
-"""The robots :func:`robot_agent` builds."""
+ROBOT_SPECS = (*STYLES, "planner-cv", "rules")
+"""The robots :func:`robot_agent` builds: a planner in each driving style
+(:data:`~trafficweaving.planning.styles.STYLES`), ``planner-cv`` (the decisive style against a
+constant-velocity human) and the rule-based robot."""
 
 
 @dataclass(frozen=True)
@@ -189,30 +189,20 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
                 device: torch.device | str = "cpu", precision: str = "auto") -> Agent:
     """The robot agent named by ``spec`` (one of :data:`ROBOT_SPECS`):
 
-    * ``planner-decisive``: :class:`~trafficweaving.planning.mpc.MPCPolicy` planning against the
-      human model ``model`` (``default``, a checkpoint path or ``authors:PATH``, as
-      :func:`~trafficweaving.model.checkpoint.load_model`; the unimodal ``lstm`` variant is just
-      ``model=path/to/lstm.pt``) through :class:`HumanPredictor` (with ``precision``), in the
-      decisive mode (:data:`~trafficweaving.planning.planner.MODES`: settled steering, turn-back cost,
-      no setting out beside the human, a gap it can stop in);
-    * ``planner-paper``: the same in the paper's mode exactly;
-    * ``planner-comfort``: decisive, with candidates that keep to nuPlan's comfort limits;
-    * ``planner`` (the default): comfort first, ``planner-comfort`` until the robot has not set out
-      2.0 s before the cutoff, or 3.0 s before it in a stand-off, or in a stand-off once the human
-      has braked along with it, then ``planner-decisive`` to the end of the episode; where only the
-      human ahead in its way (or in the lane it steers into) braking harder than 4 m/s² calls for
-      it, braking as hard as ``planner-decisive`` with the comfort steering until time does; in
-      each making room beside the human (the stand-off exit: yielding down to 20 m/s, keeping to
-      the way it has taken, going ahead of a human that brakes along), and once in its goal lane
-      not staying slower than 20 m/s where nothing holds it;
-    * ``planner-cautious``: decisive, judging its candidates by CVaR (the worst 20 % of the futures);
-    * ``planner-cv``: the decisive planner against :class:`ConstantVelocityHuman` (``model`` unused);
+    * ``planner``, ``planner-decisive``, ``planner-paper``, ``planner-comfort``,
+      ``planner-cautious``: :class:`~trafficweaving.planning.mpc.MPCPolicy` in that driving style
+      (:data:`~trafficweaving.planning.styles.STYLES`; ``planner``: comfort first, the default;
+      ``planner-paper``: the paper's planner exactly) planning against the human model ``model``
+      (``default``, a checkpoint path or ``authors:PATH``, as
+      :func:`~trafficweaving.model.registry.load_model`) through :class:`HumanPredictor` (with
+      ``precision``);
+    * ``planner-cv``: the decisive style against :class:`ConstantVelocityHuman` (``model`` unused);
     * ``rules``: :class:`RuleBasedRobot` (``model``, ``deadline``, ``budget`` unused).
 
     The planners run on ``device`` (``auto``, ``cpu``, ``cuda`` or ``cuda:N``) with the sample
-    counts ``budget`` (None: the paper's) or, with ``deadline`` (s), in real-time mode, sampling at
-    ``precision`` (:data:`~trafficweaving.model.predictor.PRECISIONS`). An unknown spec or
-    precision raises :class:`~trafficweaving.errors.InputError`.
+    counts ``budget`` (None: the paper's) or, with ``deadline`` (s), within that many seconds a
+    plan, sampling at ``precision`` (:data:`~trafficweaving.model.predictor.PRECISIONS`). An
+    unknown spec or precision raises :class:`~trafficweaving.errors.InputError`.
     """
     if spec not in ROBOT_SPECS:
         raise InputError(f"robot {spec!r} is unknown (expected one of: {', '.join(ROBOT_SPECS)})")
@@ -223,10 +213,10 @@ def robot_agent(spec: str, model: str = "default", deadline: float | None = None
 
 def robot_planner(spec: str, model: str = "default", budget: Budget | None = None,
                   device: torch.device | str = "cpu", precision: str = "auto") -> Planner:
-    """The :class:`Planner` of the planning robot ``spec`` (a key of :data:`PLANNER_MODES`, as
-    :func:`robot_agent`), for policies that drive it their own way (the
-    browser's non-blocking one)."""
+    """The :class:`Planner` of the planning robot ``spec`` (a planning robot of :data:`ROBOT_SPECS`,
+    as :func:`robot_agent`), for policies that drive it their own way (the browser's non-blocking
+    one)."""
     device = choose_device(str(device))
     human_model = (ConstantVelocityHuman(device) if spec == "planner-cv"
                    else HumanPredictor(load_model(model, device), precision=precision))
-    return Planner(human_model, budget, mode=MODES[PLANNER_MODES[spec]])
+    return Planner(human_model, budget, style=STYLES["planner-decisive" if spec == "planner-cv" else spec])

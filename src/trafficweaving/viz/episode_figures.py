@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..data.trials import TrialSet
+from ..data.trials import TrialSet, load_trials
+from ..errors import InputError
 from ..scenario import DT
 from .figures import _save, draw_road
 from .scene import CAR_COLOURS
@@ -100,3 +101,30 @@ def animate_episode(states: np.ndarray, roles: tuple[str, str], path: str | os.P
     with atomic_write(path) as f:
         frames[0].save(f, format="GIF", save_all=True, append_images=frames[1:], duration=round(1000 * DT), loop=0)
     return Path(path)
+
+
+def episode_figures(data: str, trial: int, out: Path, gif: Path | None = None) -> dict:
+    """Fig. 6 of trial ``trial`` of the dataset or episode log ``data`` at ``out`` (PNG) and, with
+    ``gif``, its animation; an episode log is run again to draw each plan's chosen future and
+    sampled human futures. Returns the written paths (``figure``, ``animation``) and
+    ``plans_drawn``."""
+    trials = load_trials(data)
+    if trial >= len(trials):
+        raise InputError(f"--trial {trial}: {data} has {len(trials)} trials (expected 0..{len(trials) - 1})")
+    length = int(trials.lengths[trial])
+    plans = None
+    if gif is not None:
+        if length > MAX_ANIMATION_STEPS:
+            raise InputError(f"--gif: trial {trial} of {data} has {length} steps (expected at most "
+                             f"{MAX_ANIMATION_STEPS}, one frame each)")
+        if "episode" in trials.metadata:
+            from ..sim.episodes import rerun_with_plans
+
+            plans = rerun_with_plans(trials)
+    payload = {"figure": str(plot_episode(trials, trial, out))}
+    if gif is not None:
+        roles = tuple(str(r) for r in trials.roles[trial])
+        payload["animation"] = str(animate_episode(trials.states[trial, :, :length], roles, gif, plans or [],
+                                                   title=str(trials.sources[trial])))
+        payload["plans_drawn"] = len(plans or [])
+    return payload

@@ -31,6 +31,7 @@ from starlette.websockets import WebSocketDisconnect
 from ..planning.mpc import NonBlockingMPCPolicy
 from ..planning.planner import example_history
 from ..sim.robots import robot_planner
+from . import protocol
 from .hosts import REFUSED_CLOSE_CODE, HostCheck, HostPolicy
 from .limits import DROP_EXTENSION
 from .lobby import Lobby, Refused
@@ -48,9 +49,10 @@ REFUSED_PAGE = "refused: this server is not on loopback; open the link it printe
 
 def build_robot(model: str, deadline: float, threads: int, device: str = "cpu") -> NonBlockingMPCPolicy:
     """The default planner (``sim.robots.robot_planner("planner")``: comfort first, against the human
-    model ``model`` in real-time mode with ``deadline`` s per plan), planning in a background
+    model ``model`` with a real-time deadline of ``deadline`` s per plan), planning in a background
     thread with ``threads`` torch threads; warmed up with a few plans there, so that the first plan
-    of a trial does not pay for lazy initialisation and the deadline mode knows this machine's speed."""
+    of a trial does not pay for lazy initialisation and the planner has measured this machine's
+    sampling rate, which sizes its samples to the deadline."""
     robot = NonBlockingMPCPolicy(robot_planner("planner", model, device=device), deadline=deadline, threads=threads)
     robot.warm_up(example_history())
     return robot
@@ -92,7 +94,7 @@ def create_app(lobby: Lobby, hosts: HostPolicy) -> FastAPI:
         if room is None or lobby.rooms.get(room.number) is not room or not room.join(member):
             why = (f"the server is full ({lobby.config.max_rooms} rooms)" if room is None
                    else f"room {room.number} is full or closed (open a new room)")
-            await websocket.send_json({"type": "error", "error": why, "for": None})
+            await websocket.send_json(protocol.error(why, None))
             await websocket.close(code=BUSY_CLOSE_CODE)
             if room is not None:
                 lobby.discard_if_empty(room)

@@ -1,8 +1,9 @@
-"""The drive's modes and defaults, in a module light enough for the command line's parser."""
+"""The drive's kinds of room and defaults, in a module light enough for the command line's parser."""
 
-MODES = ("robot", "human-human")
-"""``robot``: a person against the planner (each page its own room; the planner is shared in
-turn); ``human-human``: rooms of two pages, one person at each, driving one car each."""
+ROOM_KINDS = ("robot", "human-human")
+"""The kinds of room a drive server opens (its ``--mode``): ``robot``, a person against the planner
+(each page its own room; the planner is shared in turn); ``human-human``, rooms of two pages, one
+person at each, driving one car each."""
 PLAN_DEADLINE_S = 0.25
 """The planner's real-time deadline while driving, s: the replanning period (0.3 s) less a margin
 for handing the plan between threads and for the simulation's own step."""

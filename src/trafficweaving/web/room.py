@@ -1,13 +1,13 @@
 """A room: the pages that drive one trial together, the protocol's state machine and the
 real-time trial loop.
 
-In ``robot`` mode a room is one page against the planner; the server's one planner is shared by
+A ``robot`` room is one page against the planner; the server's one planner is shared by
 every robot room through the :class:`PlannerQueue` (a trial waits its turn, and the page is told
-its place in the queue). In ``human-human`` mode a room has two seats: the page that created it
+its place in the queue). A ``human-human`` room has two seats: the page that created it
 (seat 0) and the page that joined with its link (seat 1), each driving one car; the study
 protocol (:mod:`.study`) picks the initial conditions and swaps the cars every round.
 
-A room answers its pages' messages (:mod:`.protocol`): ``start`` begins a :class:`~.trial.Trial`
+A room answers its pages' messages: ``start`` begins a :class:`~.trial.Trial`
 (countdown, then one world step every 0.1 s of wall time: the server owns time), ``controls``
 update the person's :class:`~.person.PersonAgent` (a late or missing message leaves the car on
 its driver's last controls; those that arrive after the trial ended are ignored; before the
@@ -22,36 +22,13 @@ least ``MIN_TRIAL_STEPS`` steps (the dataset format's shortest trial), it is wri
 the :class:`~.recording.Recorder` with the drive's record under the metadata key ``drive``
 (:meth:`Room.drive_record`).
 
-Server messages (JSON objects; ``type`` first):
-
-* ``welcome``: ``protocol``, ``mode``, ``scenario`` (geometry, ``dt``, ``speed_alert``),
-  ``controls`` (:class:`~.controls.ControlLimits`), ``initial_conditions`` (index, Δv, tco, lanes,
-  start states), ``planning`` (period and deadline, or null), ``limits`` (message size, seq),
-  ``control_interval_s`` (how often the page sends controls), ``out`` (the folder), ``seat`` (this
-  page's);
-* ``room`` (human–human rooms, whenever a page comes or goes, a participant id is set or a trial
-  ends): ``room`` (its number), ``session``, ``join`` (the join link's path and query, holding
-  the room's token), ``seats`` (whether each is taken), ``participants`` (per seat), ``study``
-  (:meth:`~.study.StudySchedule.progress`);
-* ``queued``: ``position`` (1: next) while a robot room waits for the planner;
-* ``started``: ``trial``, ``initial_condition``, ``robot_car``, ``roles``, ``drivers``, ``cars``
-  (the cars this page drives), ``round`` and ``position`` (null off the protocol), ``states``
-  (start ``[2, 6]``), ``countdown_s``; then ``countdown`` (``seconds`` left) and ``go``;
-* ``state``: ``step``, ``t`` (s), ``cars`` (``[2, 6]``: ``[x, y, xd, yd, xdd, ydd]``), ``planner``
-  (``plans``, ``late``, ``latency_s``) in robot mode;
-* ``plan``: ``step`` (made at), ``actions``, ``robot`` (``[15, 2]`` positions), ``humans``
-  (``[k, 15, 2]`` sampled human futures), ``latency_s``, ``futures``;
-* ``ended``: ``trial`` (null when the page left the queue before driving), ``reason``, ``steps``,
-  ``metrics``, ``file`` (null when not recorded) and ``note``;
-* ``error``: ``error`` (one line), ``for`` (the refused message's type when known).
+The messages both ways, their fields and when each is sent: :mod:`.protocol`.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
-import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -62,25 +39,19 @@ import numpy as np
 
 from .. import __version__
 from ..planning.mpc import NonBlockingMPCPolicy
-from ..scenario import (CAR_LENGTH, CAR_WIDTH, COLLISION_DX, COLLISION_DY, CUTOFF_X, DT, LANE_CENTRE_Y,
-                        LANE_DIVIDER_Y, MIN_TRIAL_STEPS, RECORD_END_X, REPLAN_PERIOD_S, ROAD_END_X, ROAD_Y_MAX,
-                        ROAD_Y_MIN, SPEED_ALERT, START_X, study_initial_conditions)
+from ..scenario import DT, MIN_TRIAL_STEPS, study_initial_conditions
 from ..sim.metrics import latency_summary
+from . import protocol
 from .controls import ControlLimits
-from .options import COUNTDOWN_S, MAX_ROOMS, MODES, PLAN_DEADLINE_S
+from .options import COUNTDOWN_S, MAX_ROOMS, PLAN_DEADLINE_S, ROOM_KINDS
 from .person import PersonAgent
-from .protocol import (MAX_MESSAGE_BYTES, MAX_SEQ, PROTOCOL_VERSION, Abort, ControlsMessage, Participant,
-                       ProtocolError, Start, parse)
+from .protocol import Abort, ControlsMessage, Participant, ProtocolError, Start
 from .recording import Recorder
 from .study import StudySchedule
 from .trial import COMPLETED, Trial, TrialSetup
 
 log = logging.getLogger("trafficweaving.drive")
 
-CONTROL_INTERVAL_S = 0.05
-"""How often the page sends each car's controls while a trial runs, s (20 per second)."""
-PLAN_FUTURES_SHOWN = 16
-"""Sampled human futures of each plan sent to the page."""
 OUTBOX_STATE_BACKLOG = 8
 """``state`` messages are dropped while this many messages wait to be sent to a page (a page that
 does not read must not make the server queue without bound)."""
@@ -91,10 +62,10 @@ is sent, e.g. while it floods the server with refused messages)."""
 
 @dataclass(frozen=True)
 class DriveConfig:
-    """A drive server's settings: ``mode`` (:data:`~.options.MODES`), the countdown before a trial
-    (whole seconds, 0 for none), the person's control ``limits``, the robot's human ``model``
-    spec, its planning ``deadline`` (s) and torch ``threads`` (None: the server's choice), and the
-    most rooms open at once (``max_rooms``)."""
+    """A drive server's settings: ``mode``, the kind of its rooms (:data:`~.options.ROOM_KINDS`),
+    the countdown before a trial (whole seconds, 0 for none), the person's control ``limits``, the
+    robot's human ``model`` spec, its planner's real-time ``deadline`` (s) and torch ``threads``
+    (None: the server's choice), and the most rooms open at once (``max_rooms``)."""
 
     mode: str = "robot"
     countdown_s: int = COUNTDOWN_S
@@ -105,33 +76,8 @@ class DriveConfig:
     max_rooms: int = MAX_ROOMS
 
     def __post_init__(self):
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
-
-
-def welcome(config: DriveConfig, out: str, seat: int) -> dict:
-    """The ``welcome`` message: everything the page draws and checks comes from here."""
-    ics = study_initial_conditions()
-    return {
-        "type": "welcome",
-        "protocol": PROTOCOL_VERSION,
-        "mode": config.mode,
-        "scenario": {"dt": DT, "lane_centre_y": LANE_CENTRE_Y, "lane_divider_y": LANE_DIVIDER_Y,
-                     "road_y_min": ROAD_Y_MIN, "road_y_max": ROAD_Y_MAX, "car_length": CAR_LENGTH,
-                     "car_width": CAR_WIDTH, "road_end_x": ROAD_END_X, "cutoff_x": CUTOFF_X,
-                     "record_end_x": RECORD_END_X, "start_x": START_X, "speed_alert": SPEED_ALERT,
-                     "collision_dx": COLLISION_DX, "collision_dy": COLLISION_DY},
-        "controls": config.limits.as_dict(),
-        "initial_conditions": [{"index": k, "dv_ab": ic.dv_ab, "dv": ic.dv_left_minus_right + 0.0, "tco": ic.tco,
-                                "lanes": [ic.lane_a, ic.lane_b], "states": ic.start_states().tolist()}
-                               for k, ic in enumerate(ics)],
-        "planning": None if config.mode != "robot" else {"period_s": REPLAN_PERIOD_S,
-                                                         "deadline_s": config.deadline},
-        "limits": {"max_message_bytes": MAX_MESSAGE_BYTES, "max_seq": MAX_SEQ},
-        "control_interval_s": CONTROL_INTERVAL_S,
-        "out": out,
-        "seat": seat,
-    }
+        if self.mode not in ROOM_KINDS:
+            raise ValueError(f"mode must be one of {', '.join(ROOM_KINDS)}, got {self.mode!r}")
 
 
 def period_summary(starts: list[float]) -> dict:
@@ -242,7 +188,7 @@ class PlannerQueue:
 
     def _tell_places(self) -> None:
         for place, (room, _) in enumerate(self.waiting, start=1):
-            room.broadcast({"type": "queued", "position": place})
+            room.broadcast(protocol.queued(place))
 
 
 class Room:
@@ -288,7 +234,9 @@ class Room:
         member.seat = self.seats.index(None)
         self.seats[member.seat] = member
         member.open()
-        member.post(json.dumps(welcome(self.config, str(self.recorder.folder), member.seat)))
+        config = self.config
+        member.post(protocol.encode(protocol.welcome(config.mode, config.limits.as_dict(), config.deadline,
+                                                     str(self.recorder.folder), member.seat)))
         self._post_room()
         return True
 
@@ -306,7 +254,7 @@ class Room:
 
     def broadcast(self, message: dict, droppable: bool = False) -> None:
         """Queue ``message`` for every page of the room (its JSON made once)."""
-        text = json.dumps(_finite(message), allow_nan=False)
+        text = protocol.encode(message)
         for member in self.seats:
             if member is not None:
                 member.post(text, droppable)
@@ -315,15 +263,15 @@ class Room:
         """The ``room`` message (human–human rooms: a robot room's one page needs none)."""
         if self.study is None:
             return
-        self.broadcast({"type": "room", "room": self.number, "session": self.session, "join": self.join_path,
-                        "seats": [member is not None for member in self.seats], "participants": self.participants,
-                        "study": self.study.progress()})
+        self.broadcast(protocol.room(self.number, self.session, self.join_path,
+                                     [member is not None for member in self.seats], self.participants,
+                                     self.study.progress()))
 
     # ------------------------------------------------------------------ messages from a page
     async def receive(self, member: Member, text: str | bytes | None) -> None:
         """Handle one message from ``member``'s page; a refused one is answered with an ``error``."""
         try:
-            message = parse(text)
+            message = protocol.parse(text)
             if isinstance(message, Start):
                 self._start(message)
             elif isinstance(message, ControlsMessage):
@@ -337,7 +285,7 @@ class Room:
             elif isinstance(message, Participant):
                 self._participant(member, message)
         except ProtocolError as exc:
-            member.post(json.dumps({"type": "error", "error": str(exc), "for": exc.kind}))
+            member.post(protocol.encode(protocol.error(str(exc), exc.kind)))
 
     def _running(self) -> bool:
         return self.runner is not None and not self.runner.done()
@@ -413,8 +361,7 @@ class Room:
     async def _run(self, setup: TrialSetup) -> None:
         """One trial: the planner's turn (robot mode), the countdown, the steps, the record."""
         if self.planner is not None and not await self.planner.acquire(self, self.stopping):
-            self.broadcast({"type": "ended", "trial": None, "reason": "aborted", "steps": 0, "metrics": None,
-                            "file": None, "note": "left the planner's queue before driving"})
+            self.broadcast(protocol.ended(None, "aborted", 0, None, None, "left the planner's queue before driving"))
             return
         try:
             agents = tuple(self.robot if car == setup.robot_car else PersonAgent(self.config.limits) for car in (0, 1))
@@ -430,25 +377,25 @@ class Room:
 
     def _post_started(self, trial: Trial) -> None:
         setup = trial.setup
-        message = {"type": "started", "trial": trial.number, "initial_condition": setup.initial_condition_record(),
-                   "robot_car": setup.robot_car, "roles": list(setup.roles), "drivers": list(setup.drivers),
-                   "round": self.study.round if self.on_schedule else None,
-                   "position": self.study.position if self.on_schedule else None,
-                   "states": trial.start.tolist(), "countdown_s": self.config.countdown_s}
+        ic, states = setup.initial_condition_record(), trial.start.tolist()
+        round_ = self.study.round if self.on_schedule else None
+        position = self.study.position if self.on_schedule else None
         for member in self.seats:
             if member is not None:
                 cars = [car for car in (0, 1) if self.car_seats[car] == member.seat]
-                member.post(json.dumps({**message, "cars": cars}))
+                member.post(protocol.encode(protocol.started(
+                    trial.number, ic, setup.robot_car, list(setup.roles), list(setup.drivers), round_, position,
+                    states, self.config.countdown_s, cars)))
 
     async def _drive(self, trial: Trial) -> None:
         try:
             for left in range(self.config.countdown_s, 0, -1):
                 if trial.end_reason is not None:
                     break
-                self.broadcast({"type": "countdown", "seconds": left})
+                self.broadcast(protocol.countdown(left))
                 await self._pause(1.0)
             if trial.end_reason is None:
-                self.broadcast({"type": "go"})
+                self.broadcast(protocol.go())
             loop = asyncio.get_running_loop()
             next_tick = loop.time()
             while trial.end_reason is None:
@@ -471,19 +418,14 @@ class Room:
 
     def _post_progress(self, trial: Trial) -> None:
         """The new ``state`` and any new ``plan`` messages."""
-        state = {"type": "state", "step": trial.step_index, "t": round(trial.step_index * DT, 3),
-                 "cars": trial.states[:, -1].tolist()}
-        if self.robot is not None:
-            latencies = self.robot.latencies
-            state["planner"] = {"plans": len(self.robot.plans), "late": len(self.robot.late_steps),
-                                "latency_s": latencies[-1] if latencies else None}
-            for made, plan in zip(self.robot.plan_steps[self.plans_sent:], self.robot.plans[self.plans_sent:]):
-                self.broadcast({"type": "plan", "step": made, "actions": [int(a) for a in plan.actions],
-                                "robot": plan.robot[:, :2].tolist(),
-                                "humans": plan.human[:PLAN_FUTURES_SHOWN, :, :2].tolist(),
-                                "latency_s": plan.seconds, "futures": plan.futures})
-            self.plans_sent = len(self.robot.plans)
-        self.broadcast(state, droppable=True)
+        robot, counts = self.robot, None
+        if robot is not None:
+            counts = protocol.planner_counts(len(robot.plans), len(robot.late_steps),
+                                             robot.latencies[-1] if robot.latencies else None)
+            for made, plan in zip(robot.plan_steps[self.plans_sent:], robot.plans[self.plans_sent:]):
+                self.broadcast(protocol.plan(made, plan.actions, plan.robot, plan.human, plan.seconds, plan.futures))
+            self.plans_sent = len(robot.plans)
+        self.broadcast(protocol.state(trial.step_index, trial.states[:, -1], counts), droppable=True)
 
     async def _finish(self, trial: Trial) -> None:
         """Record the ended trial (when long enough), advance the protocol, and tell the pages."""
@@ -504,8 +446,8 @@ class Room:
         if self.on_schedule and path is not None and trial.end_reason in COMPLETED:
             self.study.advance()
         log.info("trial %d ended (%s) after %d steps; %s", trial.number, trial.end_reason, steps, note)
-        self.broadcast({"type": "ended", "trial": trial.number, "reason": trial.end_reason, "steps": steps,
-                        "metrics": metrics, "file": None if path is None else str(path), "note": note})
+        self.broadcast(protocol.ended(trial.number, trial.end_reason, steps, metrics,
+                                      None if path is None else str(path), note))
 
     def drive_record(self, trial: Trial, metrics: dict | None) -> dict:
         """The drive's record stored with the trial (metadata key ``drive``): ``trial``,
@@ -543,15 +485,5 @@ class Room:
                 "latencies_s": list(robot.latencies), "latency": latency_summary(robot.latencies),
                 "late_windows": list(robot.late_steps),
             }
-        return _finite(record)
+        return protocol.finite(record)
 
-
-def _finite(value):
-    """``value`` with every non-finite float as None (JSON has no NaN or Infinity)."""
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value

@@ -15,13 +15,15 @@ in the round (null when the page chose the initial condition itself).
 
 from __future__ import annotations
 
+import os
 from collections import defaultdict
 
 import numpy as np
 
-from ..data.stats import table1
+from ..data.stats import format_table1, format_table1_test, table1, table1_test
 from ..data.trials import TrialSet
 from ..scenario import study_initial_conditions
+from .recording import load_recordings
 from .trial import COMPLETED
 
 ROUND = len(study_initial_conditions())
@@ -115,3 +117,17 @@ def format_progress(progress: dict) -> str:
         lines.append(f"{row['session'] or '(no room)':<14} {row['mode'] or '—':<12} {people:<14} {row['trials']:>6} "
                      f"{row['completed']:>9} {row['aborted']:>7} {row['rounds']:>6}  {row['last'] or '—'}")
     return "\n".join(lines)
+
+
+def study_stats(folder: str | os.PathLike) -> tuple[dict, str]:
+    """``stats DIR``: the progress of the study recorded in ``folder`` (``trafficweaving drive``
+    recordings): :func:`folder_progress` with Table I's test against the paper
+    (``table1_vs_paper``, :func:`~trafficweaving.data.stats.table1_test`). Returns the ``--json``
+    payload (``folder``, then the progress) and the text."""
+    progress = folder_progress(load_recordings(folder))
+    progress["table1_vs_paper"] = table1_test(progress["table1"], progress["table1_counts"])
+    text = [f"{folder}: trials recorded {progress['files']}, completed {progress['completed']}, aborted "
+            f"{progress['aborted']} (stopped, a page gone, a server error)", format_progress(progress),
+            f"Table I so far (completed human-human trials: {progress['human_human_completed']}):",
+            format_table1(progress["table1"], progress["table1_counts"]), format_table1_test(progress["table1_vs_paper"])]
+    return {"folder": str(folder), **progress}, "\n".join(text)

@@ -1,4 +1,4 @@
-"""One browser trial, without the browser: the world of step 6, both cars' agents and the end rule.
+"""One browser trial, without the browser: the simulated world, both cars' agents and the end rule.
 
 A trial starts from one of the study's 18 initial conditions
 (:func:`~trafficweaving.scenario.study_initial_conditions`) and steps the
@@ -35,10 +35,10 @@ COMPLETED = END_REASONS[:4]
 
 @dataclass(frozen=True)
 class TrialSetup:
-    """What a trial starts from: ``mode`` (:data:`~.options.MODES`), the initial condition's index ``ic``
-    (0..17 in :func:`study_initial_conditions`), the robot's car ``robot_car`` (0 = car A or 1 = car
-    B; None in human–human mode), the drivers' ids ``drivers`` per car (-1: the robot or unknown)
-    and the ``seed`` of the trial's random draws."""
+    """What a trial starts from: ``mode``, the kind of room (:data:`~.options.ROOM_KINDS`), the
+    initial condition's index ``ic`` (0..17 in :func:`study_initial_conditions`), the robot's car
+    ``robot_car`` (0 = car A or 1 = car B; None in human–human mode), the drivers' ids ``drivers``
+    per car (-1: the robot or unknown) and the ``seed`` of the trial's random draws."""
 
     mode: str
     ic: int

@@ -1,6 +1,7 @@
 // trafficweaving drive: the connection. One WebSocket to the server's room (a new one, or with
 // ?room=N&token=T from a join link the room that link invites to), the server's messages and
-// what the page shows of them: the room, the trial set-up, the queue, the result.
+// what the page shows of them: the room, the trial set-up, the queue, the result. Every message
+// both ways, its fields and when it is sent: src/trafficweaving/web/protocol.py.
 "use strict";
 
 let socket = null;

@@ -13,19 +13,20 @@ from trafficweaving.dynamics import future_states, integrate_trapezoid
 from trafficweaving.errors import InputError
 from trafficweaving.model.constant_velocity import ConstantVelocityHuman
 from trafficweaving.model.cvae import CVAE, CVAEConfig
-from trafficweaving.model.checkpoint import load_model
+from trafficweaving.model.registry import load_model
 from trafficweaving.model.fused_decoder import INT8_RANGE, FusedDecoder, decode_step, quantize_rows
 from trafficweaving.model.predictor import HumanPredictor, resolve_precision
 from trafficweaving.model.sampler import BatchedRollout
-from trafficweaving.planning.candidates import (ACCELERATIONS, MOTIONS, N_ACTIONS, N_CANDIDATES, SETTLING_TIME, WINDOWS, Action,
-                                                acceleration_indices, action_sequences, robot_candidates, rollout)
+from trafficweaving.planning.candidates import (ACCELERATIONS, KINEMATICS, N_ACTIONS, N_CANDIDATES, SETTLING_TIME, WINDOWS,
+                                                Action, acceleration_indices, action_sequences, robot_candidates, rollout)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
-from trafficweaving.planning.planner import (FOLLOW_COST, FOLLOW_LATERAL, HUMAN_ACCELERATION_HELD, MODES,
-                                             OWN_FUTURES_SHARE, PROGRESS_COST, SCREENING_SAMPLES, SET_OUT_COST,
-                                             SET_OUT_GAP, SHORTLIST, STANDOFF_EXIT_COST, YIELD_MARGIN,
-                                             YIELD_SPEED_FLOOR, Budget, Mode, Planner, brakes_along, example_history,
-                                             risk_cost, set_outs, standoff_exit, stopping_shortfall, turn_backs)
+from trafficweaving.planning.planner import (OWN_FUTURES_SHARE, SCREENING_SAMPLES, SHORTLIST, Budget, Planner,
+                                             example_history, risk_cost)
+from trafficweaving.planning.styles import (FOLLOW_COST, FOLLOW_LATERAL, HUMAN_ACCELERATION_HELD, PROGRESS_COST,
+                                            SET_OUT_COST, SET_OUT_GAP, STANDOFF_EXIT_COST, STYLES, YIELD_MARGIN,
+                                            YIELD_SPEED_FLOOR, DrivingStyle, brakes_along, set_outs, standoff_exit,
+                                            stopping_shortfall, turn_backs)
 from trafficweaving.planning.steering import jerk_limited_steer, optimal_time, steer, steering_cost
 from trafficweaving.scenario import COLLISION_DX, CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.sim.world import World
@@ -394,14 +395,14 @@ def test_turning_back_from_a_lane_change_under_way_costs_and_setting_out_does_no
     history = HISTORY_TOY.copy()
     history[-1, 0, 1] = RIGHT + 1.5  # 1.5 m under way
     plain = Planner(ToyHuman(), seed=0).plan(history, fixed, cost)
-    committed = Planner(ToyHuman(), seed=0, mode=Mode(turn_back_cost=1000.0, commit_offset=1.0)).plan(history, fixed, cost)
+    committed = Planner(ToyHuman(), seed=0, style=DrivingStyle(turn_back_cost=1000.0, commit_offset=1.0)).plan(history, fixed, cost)
     backs = turn_backs(plain.candidates.actions, "left")  # the toy cost ignores the lane
     assert backs.max() == 2 and (backs == 0).sum() == N_CANDIDATES // 2 ** (WINDOWS - 1)  # left, right, left, right, left
     np.testing.assert_allclose(committed.first_stage_cost - plain.first_stage_cost, 1000.0 * backs, atol=1e-3)
     assert backs[committed.index] == 0 and _accelerates_throughout(committed)
-    probing = Planner(ToyHuman(), seed=0, mode=Mode(turn_back_cost=1000.0, commit_offset=2.0)).plan(history, fixed, cost)
+    probing = Planner(ToyHuman(), seed=0, style=DrivingStyle(turn_back_cost=1000.0, commit_offset=2.0)).plan(history, fixed, cost)
     np.testing.assert_array_equal(probing.first_stage_cost, plain.first_stage_cost)  # not yet committed: free
-    free = Planner(ToyHuman(), seed=0, mode=Mode(turn_back_cost=1000.0)).plan(history, fixed, toy_cost)
+    free = Planner(ToyHuman(), seed=0, style=DrivingStyle(turn_back_cost=1000.0)).plan(history, fixed, toy_cost)
     np.testing.assert_array_equal(free.first_stage_cost, plain.first_stage_cost)  # a cost without a goal lane
     lanes = lambda *names: [Action.of(0.0, n).index for n in names]  # noqa: E731
     sequences = np.array([lanes("right", "left", "left", "left", "left"), lanes("left", "right", "left", "right", "left"),
@@ -411,16 +412,16 @@ def test_turning_back_from_a_lane_change_under_way_costs_and_setting_out_does_no
 
 def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_way_does_not():
     """HISTORY_TOY's cars are side by side, the robot in the right lane; the goal is the left lane."""
-    keep, cost, mode = Action.of(0.0, "right").index, GoalToyCost(LEFT), Mode(set_out_gap=5.0)
+    keep, cost, style = Action.of(0.0, "right").index, GoalToyCost(LEFT), DrivingStyle(set_out_gap=5.0)
     plain = Planner(ToyHuman(), seed=0).plan(HISTORY_TOY, keep, cost)
-    beside = Planner(ToyHuman(), seed=0, mode=mode).plan(HISTORY_TOY, keep, cost)
+    beside = Planner(ToyHuman(), seed=0, style=style).plan(HISTORY_TOY, keep, cost)
     starts = set_outs(plain.candidates.actions, "left")
     assert starts.sum() == N_CANDIDATES // 2
     np.testing.assert_allclose(beside.first_stage_cost - plain.first_stage_cost, SET_OUT_COST * starts, atol=0.1)
     assert not starts[beside.index]
 
     def costs_of_the_rule(history):
-        return (Planner(ToyHuman(), seed=0, mode=mode).plan(history, keep, cost).first_stage_cost
+        return (Planner(ToyHuman(), seed=0, style=style).plan(history, keep, cost).first_stage_cost
                 - Planner(ToyHuman(), seed=0).plan(history, keep, cost).first_stage_cost)
 
     apart = HISTORY_TOY.copy()
@@ -441,7 +442,7 @@ def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_w
     in_lane[:, 1] = HISTORY_TOY[:, 0] + [3.0, 0, 0, 0, 0, 0]  # 3 m ahead in the robot's lane: setting out moves away
     np.testing.assert_array_equal(costs_of_the_rule(in_lane), 0.0)
     going = Action.of(0.0, "left").index  # window 0 already sets out: nothing to start
-    np.testing.assert_array_equal(Planner(ToyHuman(), seed=0, mode=mode).plan(HISTORY_TOY, going, cost).first_stage_cost,
+    np.testing.assert_array_equal(Planner(ToyHuman(), seed=0, style=style).plan(HISTORY_TOY, going, cost).first_stage_cost,
                                   Planner(ToyHuman(), seed=0).plan(HISTORY_TOY, going, cost).first_stage_cost)
     lanes = lambda *names: [Action.of(0.0, n).index for n in names]  # noqa: E731
     sequences = np.array([lanes("right", "left", "left", "left", "left"), lanes("left", "left", "left", "left", "left"),
@@ -452,41 +453,41 @@ def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_w
 def test_the_set_out_rule_moves_the_robot_as_each_candidate_does():
     """The human 1 m behind the robot and 6 m/s slower is 4.6 m behind 0.6 s from now if the robot
     keeps its speed: too close to set out; 5.3 m behind if the robot accelerates at 4 m/s² from now
-    (the decisive motion reaches it at once): room; 3.5 m if it brakes at 6 m/s². A candidate that
-    holds its speed is judged as the robot keeping it (:meth:`Mode.blocks_set_out`)."""
-    mode = MODES["decisive"]
+    (the decisive kinematics reach it at once): room; 3.5 m if it brakes at 6 m/s². A candidate that
+    holds its speed is judged as the robot keeping it (:meth:`DrivingStyle.blocks_set_out`)."""
+    style = STYLES["planner-decisive"]
     robot = np.array([-120.0, RIGHT, 30.0, 0.0, 0.0, 0.0])
     human = robot + [-1.0, LEFT - RIGHT, -6.0, 0.0, 0.0, 0.0]
-    assert mode.blocks_set_out(robot, human)
+    assert style.blocks_set_out(robot, human)
     for acceleration, blocked in ((0.0, True), (4.0, False), (-6.0, True)):
         first, across = Action.of(acceleration, "right").index, Action.of(acceleration, "left").index
-        states = robot_candidates(robot, first, mode.motion).states
+        states = robot_candidates(robot, first, style.kinematics).states
         sequence = (action_sequences(first)[:, 1:] == across).all(1)
-        assert mode.blocks_set_out_along(states[sequence], robot, human).tolist() == [blocked], acceleration
-    holding = robot_candidates(robot, Action.of(0.0, "right").index, mode.motion)
+        assert style.blocks_set_out_along(states[sequence], robot, human).tolist() == [blocked], acceleration
+    holding = robot_candidates(robot, Action.of(0.0, "right").index, style.kinematics)
     held = (acceleration_indices(holding.actions) == 0).all(1)
     for gap in (-6.0, -4.0, 0.0, 4.9, 5.1, 8.0):
         for speed in (24.0, 30.0, 33.0):
             other = robot + [gap, LEFT - RIGHT, speed - 30.0, 0.0, 0.0, 0.0]
-            along = mode.blocks_set_out_along(holding.states[held], robot, other)
-            assert (along == mode.blocks_set_out(robot, other)).all()
+            along = style.blocks_set_out_along(holding.states[held], robot, other)
+            assert (along == style.blocks_set_out(robot, other)).all()
     in_lane = robot + [-1.0, 0.0, -6.0, 0.0, 0.0, 0.0]  # the human in the robot's lane: nothing to wait for
-    assert not mode.blocks_set_out_along(holding.states, robot, in_lane).any()
-    assert not MODES["paper"].blocks_set_out_along(holding.states, robot, human).any()
+    assert not style.blocks_set_out_along(holding.states, robot, in_lane).any()
+    assert not STYLES["planner-paper"].blocks_set_out_along(holding.states, robot, human).any()
 
 
-def _shortfall_by_simulation(robot, states, human, human_braking, motion, dt=1e-3):
+def _shortfall_by_simulation(robot, states, human, human_braking, kinematics, dt=1e-3):
     """:func:`stopping_shortfall` of one candidate ``states [15, 6]`` the long way: both cars'
     speeds integrated on a fine time grid, the gap checked at each step where the robot is in the
     human's way and, braking, at every point after the horizon if it still is."""
     if human[0] <= robot[0]:
         return 0.0
-    b_h, b_r = max(human_braking, -human[4]), -min(motion.accelerations)
+    b_h, b_r = max(human_braking, -human[4]), -min(kinematics.accelerations)
     t = np.arange(0.0, 30.0, dt)
     human_x = human[0] + np.concatenate([[0.0], np.cumsum(dt * np.maximum(human[2] - b_h * (t[:-1] + dt / 2), 0.0))])
     in_way = np.abs(states[:, 1] - human[1]) < FOLLOW_LATERAL
     gaps = [human_x[round(k * DT / dt)] - states[k - 1, 0] - COLLISION_DX for k in range(1, 7) if in_way[k - 1]]
-    delay = 0.0 if motion.jerk is None else max(states[5, 4] + b_r, 0.0) / (2 * motion.jerk)
+    delay = 0.0 if kinematics.jerk is None else max(states[5, 4] + b_r, 0.0) / (2 * kinematics.jerk)
     braking = t >= 0.6 - dt / 2
     s = t[braking] - t[braking][0]
     v = max(states[5, 2], 0.0)  # braking to a stop, not reversing
@@ -502,17 +503,17 @@ def _shortfall_by_simulation(robot, states, human, human_braking, motion, dt=1e-
 @settings(max_examples=60, deadline=None)
 @given(gap=st.floats(-2.0, 30.0), robot_speed=st.floats(0.0, 35.0), human_speed=st.floats(0.0, 35.0),
        human_acceleration=st.floats(-9.0, 2.0), offset=st.floats(-5.0, 5.0), first=st.integers(0, 7),
-       motion=st.sampled_from(["settled", "comfort"]))
+       kinematics=st.sampled_from(["settled", "comfort"]))
 def test_the_stopping_shortfall_is_the_least_gap_of_both_cars_braking(gap, robot_speed, human_speed, human_acceleration,
-                                                                      offset, first, motion):
+                                                                      offset, first, kinematics):
     """The closed form (the least gap at the ends of the speeds' pieces or where they are equal)
-    against both cars braked on a 1 ms grid, for candidates moving as each motion."""
-    motion = MOTIONS[motion]
+    against both cars braked on a 1 ms grid, for candidates moving as each kinematics."""
+    kinematics = KINEMATICS[kinematics]
     robot = np.array([0.0, RIGHT, robot_speed, 0.0, 0.0, 0.0])
     human = np.array([gap, RIGHT + offset, human_speed, 0.0, human_acceleration, 0.0])
-    candidates = robot_candidates(robot, first, motion).states[::97]
-    short = stopping_shortfall(robot, candidates, human, 6.0, motion)
-    expected = [_shortfall_by_simulation(robot, c, human, 6.0, motion) for c in candidates]
+    candidates = robot_candidates(robot, first, kinematics).states[::97]
+    short = stopping_shortfall(robot, candidates, human, 6.0, kinematics)
+    expected = [_shortfall_by_simulation(robot, c, human, 6.0, kinematics) for c in candidates]
     np.testing.assert_allclose(short, expected, atol=0.03)
 
 
@@ -522,38 +523,38 @@ def test_the_following_rule_keeps_a_gap_the_robot_can_stop_in():
     braking harder in window 1 comes shorter by less;
     the rule is silent for a human behind or in the other lane, and the planner's rule cost is
     FOLLOW_COST per metre."""
-    mode = MODES["decisive"]
+    style = STYLES["planner-decisive"]
     robot = np.array([0.0, RIGHT, 20.0, 0.0, 0.0, 0.0])
     cruising = robot + [20.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     braking = cruising + [0.0, 0.0, 0.0, 0.0, -8.0, 0.0]
     in_lane = [Action.of(a, "right").index for a in ACCELERATIONS]
     sequences = np.array([[in_lane[0], a, a, a, a] for a in in_lane])  # window 1 at 0, 4, -3, -6 m/s², held
-    states = rollout(robot, sequences, mode.motion)
-    held, faster, slower, hardest = stopping_shortfall(robot, states, braking, mode.follow_braking, mode.motion)
+    states = rollout(robot, sequences, style.kinematics)
+    held, faster, slower, hardest = stopping_shortfall(robot, states, braking, style.follow_braking, style.kinematics)
     assert held > 0 and faster > held > slower > hardest
-    assert stopping_shortfall(robot, states[:1], cruising, mode.follow_braking, mode.motion)[0] == 0.0
+    assert stopping_shortfall(robot, states[:1], cruising, style.follow_braking, style.kinematics)[0] == 0.0
     behind = braking - [40.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     other_lane = braking + [0.0, LEFT - RIGHT, 0.0, 0.0, 0.0, 0.0]
     for human in (behind, other_lane):
-        np.testing.assert_array_equal(stopping_shortfall(robot, states, human, mode.follow_braking, mode.motion), 0.0)
-    ramped = stopping_shortfall(robot, states, braking, mode.follow_braking, MOTIONS["comfort"])
-    assert ramped[0] > held  # the comfort motion's braking ramps up at its jerk limit: it needs more room
+        np.testing.assert_array_equal(stopping_shortfall(robot, states, human, style.follow_braking, style.kinematics), 0.0)
+    ramped = stopping_shortfall(robot, states, braking, style.follow_braking, KINEMATICS["comfort"])
+    assert ramped[0] > held  # the comfort kinematics' braking ramps up at its jerk limit: it needs more room
 
     history = np.repeat(np.stack([robot, braking])[None], 6, axis=0)
     history[:, :, 0] += 20.0 * DT * np.arange(-5, 1)[:, None]
     keep, cost = in_lane[0], GoalToyCost(RIGHT)
-    ruled = Planner(ToyHuman(), seed=0, mode=mode).plan(history, keep, cost)
-    plain = Planner(ToyHuman(), seed=0, mode=replace(mode, follow_braking=0.0)).plan(history, keep, cost)
-    expected = FOLLOW_COST * stopping_shortfall(robot, ruled.candidates.states, braking, mode.follow_braking, mode.motion)
+    ruled = Planner(ToyHuman(), seed=0, style=style).plan(history, keep, cost)
+    plain = Planner(ToyHuman(), seed=0, style=replace(style, follow_braking=0.0)).plan(history, keep, cost)
+    expected = FOLLOW_COST * stopping_shortfall(robot, ruled.candidates.states, braking, style.follow_braking, style.kinematics)
     np.testing.assert_allclose(ruled.first_stage_cost - plain.first_stage_cost, expected, rtol=1e-5, atol=0.1)
     assert Action(int(ruled.actions[1])).acceleration == -6.0  # toy_cost alone prefers 4 m/s² in every window
     with pytest.raises(InputError):
-        Mode(follow_braking=-1.0)
+        DrivingStyle(follow_braking=-1.0)
 
 
 def test_in_its_goal_lane_the_robot_gets_going_again_where_nothing_holds_it():
     """Stopped in its goal lane 8 m short of the cutoff, a slow human 7 m ahead beside it: the paper's
-    cost pays the robot for staying behind (separation reward) and ``comfort-first``'s modes still
+    cost pays the robot for staying behind (separation reward) and ``planner``'s styles still
     accelerate (PROGRESS_COST per m/s of the horizon's end speed short of the floor: the rule costs
     exactly that), without the progress cost they stay; in the start lane, or faster than the
     floor, the cost is silent."""
@@ -562,11 +563,11 @@ def test_in_its_goal_lane_the_robot_gets_going_again_where_nothing_holds_it():
     history = np.repeat(np.stack([robot, human])[None], 6, axis=0)
     history[:, 1, 0] += 1.5 * DT * np.arange(-5, 1)
     keep, cost = Action.of(0.0, "right").index, PaperCost(goal_y=RIGHT)
-    first = MODES["comfort-first"]
-    for mode in (first, first.fallback, first.safety_fallback):
-        assert mode.progress_cost == PROGRESS_COST
-        ruled = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), mode=mode).plan(history, keep, cost)
-        plain = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), mode=replace(mode, progress_cost=0.0)).plan(
+    first = STYLES["planner"]
+    for style in (first, first.fallback, first.safety_fallback):
+        assert style.progress_cost == PROGRESS_COST
+        ruled = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), style=style).plan(history, keep, cost)
+        plain = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), style=replace(style, progress_cost=0.0)).plan(
             history, keep, cost)
         short = np.maximum(YIELD_SPEED_FLOOR - ruled.candidates.states[:, -1, 2], 0.0)
         np.testing.assert_allclose(ruled.first_stage_cost - plain.first_stage_cost, PROGRESS_COST * short, rtol=1e-5)
@@ -575,12 +576,12 @@ def test_in_its_goal_lane_the_robot_gets_going_again_where_nothing_holds_it():
     fast = history.copy()
     fast[:, 0, 2] = YIELD_SPEED_FLOOR + 0.5  # its braking candidates end the horizon below the floor
     for situation, goal_y in ((history, LEFT), (fast, RIGHT)):  # in the start lane; not slower than the floor
-        ruled = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), mode=first).plan(situation, keep, PaperCost(goal_y))
-        plain = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), mode=replace(first, progress_cost=0.0)).plan(
+        ruled = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), style=first).plan(situation, keep, PaperCost(goal_y))
+        plain = Planner(ConstantVelocityHuman(), Budget(1, 8, 1), style=replace(first, progress_cost=0.0)).plan(
             situation, keep, PaperCost(goal_y))
         np.testing.assert_allclose(ruled.first_stage_cost, plain.first_stage_cost)
     with pytest.raises(InputError, match="progress_cost"):
-        Mode(progress_cost=-1.0)
+        DrivingStyle(progress_cost=-1.0)
 
 
 def _seconds_to_clear(robot, human, acceleration, gap, ahead, floor=-np.inf):
@@ -601,32 +602,32 @@ def _seconds_to_clear(robot, human, acceleration, gap, ahead, floor=-np.inf):
 @given(st.floats(-12.0, 12.0), st.floats(-4.0, 4.0), st.floats(-8.0, 4.0), st.floats(14.0, 32.0),
        st.sampled_from(["settled", "comfort"]), st.sampled_from(["holding", "accelerating", "braking"]))
 def test_the_standoff_exit_takes_the_sooner_way_out_and_keeps_to_the_present_one_in_doubt(
-        dx, dv, human_acceleration, speed, motion_name, present):
+        dx, dv, human_acceleration, speed, kinematics_name, present):
     """Against brute force, the robot braking to YIELD_SPEED_FLOOR and no slower: in doubt (neither
     way out YIELD_MARGIN s sooner) it yields, unless it is accelerating already."""
-    motion = MOTIONS[motion_name]
-    robot_acceleration = {"holding": 0.0, "accelerating": max(motion.accelerations),
-                          "braking": -motion.hardest_braking}[present]
+    kinematics = KINEMATICS[kinematics_name]
+    robot_acceleration = {"holding": 0.0, "accelerating": max(kinematics.accelerations),
+                          "braking": -kinematics.hardest_braking}[present]
     human = np.array([-100.0, LEFT, speed, 0.0, human_acceleration, 0.0])
     robot = np.array([-100.0 + dx, RIGHT, speed + dv, 0.0, robot_acceleration, 0.0])
-    ahead = _seconds_to_clear(robot, human, max(motion.accelerations), SET_OUT_GAP, True)
-    behind = _seconds_to_clear(robot, human, -motion.hardest_braking, SET_OUT_GAP, False, YIELD_SPEED_FLOOR)
-    way_out = motion.accelerations[standoff_exit(robot, human, motion, SET_OUT_GAP)]
+    ahead = _seconds_to_clear(robot, human, max(kinematics.accelerations), SET_OUT_GAP, True)
+    behind = _seconds_to_clear(robot, human, -kinematics.hardest_braking, SET_OUT_GAP, False, YIELD_SPEED_FLOOR)
+    way_out = kinematics.accelerations[standoff_exit(robot, human, kinematics, SET_OUT_GAP)]
     doubt = ahead + YIELD_MARGIN > behind + 2e-3 and behind + YIELD_MARGIN > ahead + 2e-3  # neither clearly sooner
     if ahead + YIELD_MARGIN < behind - 2e-3 or doubt and present == "accelerating":
-        assert way_out == max(motion.accelerations)
+        assert way_out == max(kinematics.accelerations)
     elif behind + YIELD_MARGIN < ahead - 2e-3 or (doubt or ahead == behind == np.inf) and present != "accelerating":
-        assert way_out == -motion.hardest_braking
+        assert way_out == -kinematics.hardest_braking
 
 
 def test_the_standoff_exit_yields_down_to_the_speed_floor_and_no_further():
     """2 m behind a human at the same speed, the robot drops behind (hardest braking) at 29 m/s;
     at YIELD_SPEED_FLOOR it cannot brake any more, so it goes ahead instead."""
-    motion = MOTIONS["settled"]
+    kinematics = KINEMATICS["settled"]
     for speed, way_out in ((29.0, -6.0), (YIELD_SPEED_FLOOR, 4.0)):
         human = np.array([-60.0, LEFT, speed, 0.0, 0.0, 0.0])
         robot = human + [-2.0, RIGHT - LEFT, 0.0, 0.0, 0.0, 0.0]
-        assert motion.accelerations[standoff_exit(robot, human, motion, SET_OUT_GAP)] == way_out
+        assert kinematics.accelerations[standoff_exit(robot, human, kinematics, SET_OUT_GAP)] == way_out
 
 
 def _side_by_side(robot_accelerations, human_accelerations, dx=0.0):
@@ -644,28 +645,28 @@ def _side_by_side(robot_accelerations, human_accelerations, dx=0.0):
 def test_the_way_out_goes_ahead_once_the_human_has_braked_along():
     """Side by side, the robot has braked at 4 m/s² for a second, then held its speed: the present
     states alone say drop behind. A human that braked as hard (brakes_along) makes the robot go
-    ahead, also 2 s later, and makes comfort first fall back on the decisive mode; one that kept
+    ahead, also 2 s later, and makes comfort first fall back on the decisive style; one that kept
     its speed, braked at half the robot's rate or at twice it (the speeds part: the way ahead opens
     by itself), or braked along while far ahead (no stand-off), does not."""
-    first = replace(MODES["comfort-first"], standoff_within=0.0)  # beside the human yielding, not time, makes it fall back
-    mode = first.fallback
+    first = replace(STYLES["planner"], standoff_within=0.0)  # beside the human yielding, not time, makes it fall back
+    style = first.fallback
     keep = Action.of(0.0, "right").index
     braking = [0.0] * 5 + [-4.0] * 10 + [0.0]
     for human, along in ((braking, True), ([0.0] * 16, False), ([0.0] * 5 + [-2.0] * 10 + [0.0], False)):
         history = _side_by_side(braking, human, dx=2.0 * along - 1.0)  # 1 m behind or ahead: no way ahead before
         assert brakes_along(history) == along
-        assert mode.motion.accelerations[standoff_exit(*history[-1], mode.motion, SET_OUT_GAP)] == -6.0
-        assert mode.human_yields(history) == along
-        assert mode.motion.accelerations[mode.way_out(history)] == (4.0 if along else -6.0)
-        assert first.fallback_for(history, keep, LEFT) is (mode if along else None)
+        assert style.kinematics.accelerations[standoff_exit(*history[-1], style.kinematics, SET_OUT_GAP)] == -6.0
+        assert style.human_yields(history) == along
+        assert style.kinematics.accelerations[style.way_out(history)] == (4.0 if along else -6.0)
+        assert first.fallback_for(history, keep, LEFT) is (style if along else None)
     harder = _side_by_side(braking, [0.0] * 5 + [-8.0] * 10 + [0.0], dx=1.0)  # the human braking twice as hard
-    assert not brakes_along(harder) and not mode.human_yields(harder) and first.fallback_for(harder, keep, LEFT) is None
-    assert mode.way_out(harder) == standoff_exit(*harder[-1], mode.motion, SET_OUT_GAP)  # ahead opens by itself
+    assert not brakes_along(harder) and not style.human_yields(harder) and first.fallback_for(harder, keep, LEFT) is None
+    assert style.way_out(harder) == standoff_exit(*harder[-1], style.kinematics, SET_OUT_GAP)  # ahead opens by itself
     later = _side_by_side(braking + [0.0] * 20, braking + [0.0] * 20, dx=1.0)
-    assert not brakes_along(later) and mode.human_yields(later) and first.fallback_for(later, keep, LEFT) is mode
-    assert mode.motion.accelerations[mode.way_out(later)] == 4.0
+    assert not brakes_along(later) and style.human_yields(later) and first.fallback_for(later, keep, LEFT) is style
+    assert style.kinematics.accelerations[style.way_out(later)] == 4.0
     far = _side_by_side(braking, braking, dx=-30.0)
-    assert brakes_along(far) and not mode.human_yields(far) and first.fallback_for(far, keep, LEFT) is None
+    assert brakes_along(far) and not style.human_yields(far) and first.fallback_for(far, keep, LEFT) is None
     assert not brakes_along(_side_by_side([0.0] * 3 + [-4.0] * 3, [0.0] * 3 + [-4.0] * 3))  # too short a history
 
 
@@ -674,105 +675,105 @@ def test_the_standoff_exit_makes_room_beside_the_human():
     beside a human braking at 8 m/s², it goes ahead. The planner costs every other window-1
     acceleration ``standoff_exit_cost`` while the set-out rule holds the robot in its lane, and
     only then."""
-    mode = MODES["comfort-first"].fallback
-    assert mode.standoff_exit_cost == MODES["comfort-first"].standoff_exit_cost == STANDOFF_EXIT_COST
+    style = STYLES["planner"].fallback
+    assert style.standoff_exit_cost == STYLES["planner"].standoff_exit_cost == STANDOFF_EXIT_COST
     history = _history()
     robot, human = history[-1]
-    assert mode.blocks_set_out(robot, human)  # the human 2 m ahead at the same speed
-    assert mode.motion.accelerations[standoff_exit(robot, human, mode.motion, SET_OUT_GAP)] == -6.0
+    assert style.blocks_set_out(robot, human)  # the human 2 m ahead at the same speed
+    assert style.kinematics.accelerations[standoff_exit(robot, human, style.kinematics, SET_OUT_GAP)] == -6.0
     ahead = robot + [6.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-    assert mode.motion.accelerations[standoff_exit(ahead, human, mode.motion, SET_OUT_GAP)] == 4.0
+    assert style.kinematics.accelerations[standoff_exit(ahead, human, style.kinematics, SET_OUT_GAP)] == 4.0
     braking = human + [0.0, 0.0, 0.0, 0.0, -8.0, 0.0]  # a human that yields too: the robot goes ahead
-    assert mode.motion.accelerations[standoff_exit(robot, braking, mode.motion, SET_OUT_GAP)] == 4.0
+    assert style.kinematics.accelerations[standoff_exit(robot, braking, style.kinematics, SET_OUT_GAP)] == 4.0
     keep, cost = Action.of(0.0, "right").index, GoalToyCost(LEFT)
-    ruled = Planner(ToyHuman(), seed=0, mode=mode).plan(history, keep, cost)
-    plain = Planner(ToyHuman(), seed=0, mode=replace(mode, standoff_exit_cost=0.0)).plan(history, keep, cost)
+    ruled = Planner(ToyHuman(), seed=0, style=style).plan(history, keep, cost)
+    plain = Planner(ToyHuman(), seed=0, style=replace(style, standoff_exit_cost=0.0)).plan(history, keep, cost)
     exits = np.array([Action(int(a)).acceleration for a in ruled.candidates.actions[:, 1]]) == -6.0
     np.testing.assert_allclose(ruled.first_stage_cost - plain.first_stage_cost, STANDOFF_EXIT_COST * ~exits, atol=0.1)
     assert Action(int(ruled.actions[1])).acceleration == -6.0 and Action(int(plain.actions[1])).acceleration == 4.0
     clear = history.copy()
     clear[:, 1, 0] += 30.0  # the human 32 m ahead: no stand-off, no exit cost
-    ruled = Planner(ToyHuman(), seed=0, mode=mode).plan(clear, keep, cost)
-    plain = Planner(ToyHuman(), seed=0, mode=replace(mode, standoff_exit_cost=0.0)).plan(clear, keep, cost)
+    ruled = Planner(ToyHuman(), seed=0, style=style).plan(clear, keep, cost)
+    plain = Planner(ToyHuman(), seed=0, style=replace(style, standoff_exit_cost=0.0)).plan(clear, keep, cost)
     np.testing.assert_allclose(ruled.first_stage_cost, plain.first_stage_cost)
     with pytest.raises(InputError, match="standoff_exit_cost"):
-        Mode(standoff_exit_cost=-1.0)
+        DrivingStyle(standoff_exit_cost=-1.0)
 
 
-def test_the_set_out_rule_watches_the_gap_while_each_modes_lane_change_crosses_the_divider():
+def test_the_set_out_rule_watches_the_gap_while_each_styles_lane_change_crosses_the_divider():
     """With half a second or more to spare either side, for the lane change from rest set out in
-    window 1 (0.3 s from now); the modes' fallbacks too."""
+    window 1 (0.3 s from now); the styles' fallbacks too."""
     times = np.arange(1, 61) * DT
-    for name, mode in [(name, mode) for name, top in MODES.items()
-                       for mode in (top, top.fallback, top.safety_fallback) if mode is not None]:
-        if mode.set_out_gap:
-            y = mode.motion.steer(np.array([RIGHT, 0.0, 0.0]), np.array(LEFT), times)[:, 0]
+    for name, style in [(name, style) for name, top in STYLES.items()
+                       for style in (top, top.fallback, top.safety_fallback) if style is not None]:
+        if style.set_out_gap:
+            y = style.kinematics.steer(np.array([RIGHT, 0.0, 0.0]), np.array(LEFT), times)[:, 0]
             over = np.abs(y - LANE_DIVIDER_Y) < CAR_WIDTH / 2  # the robot's body over the divider
             first, last = 0.3 + times[over][[0, -1]]
-            assert mode.set_out_times[0] <= first - 0.45 and mode.set_out_times[-1] >= last + 0.45, name
+            assert style.set_out_times[0] <= first - 0.45 and style.set_out_times[-1] >= last + 0.45, name
 
 
-def test_a_mode_falls_back_when_time_runs_short_or_the_human_ahead_brakes_harder_than_it_can():
+def test_a_style_falls_back_when_time_runs_short_or_the_human_ahead_brakes_harder_than_it_can():
     """The fallback plans from the first window the robot, settled in its start lane, would reach the
     cutoff within ``fallback_within`` s, or ``standoff_within`` s while the set-out rule holds it
     and would still hold it ``fallback_within`` s before the cutoff (not while a lane change is
     under way), or, in either lane or moving between them, the human ahead in its way brakes harder
-    than the mode's motion can."""
-    comfort, quick = MODES["comfort"], MODES["decisive"]
-    mode = replace(comfort, fallback=quick, fallback_within=2.0, standoff_within=3.0)
+    than the style's kinematics can."""
+    comfort, quick = STYLES["planner-comfort"], STYLES["planner-decisive"]
+    style = replace(comfort, fallback=quick, fallback_within=2.0, standoff_within=3.0)
     keep, go = Action.of(0.0, "right").index, Action.of(0.0, "left").index
 
     def car(seconds_to_cutoff, speed=30.0, y=RIGHT, yd=0.0):
         return np.array([CUTOFF_X - 30.0 * seconds_to_cutoff, y, speed, yd, 0.0, 0.0])
 
-    def fallback(mode, robot, human, first_action, goal_y):  # from the present states alone
-        return mode.fallback_for(np.stack([robot, human])[None], first_action, goal_y)
+    def fallback(style, robot, human, first_action, goal_y):  # from the present states alone
+        return style.fallback_for(np.stack([robot, human])[None], first_action, goal_y)
 
     far = car(5.0, y=LEFT)
-    assert fallback(mode, car(1.95), far, keep, LEFT) is quick and fallback(mode, car(2.05), far, keep, LEFT) is None
-    assert fallback(mode, car(1.0), far, go, LEFT) is None  # set out: window 0 heads for the goal lane
-    assert fallback(mode, car(1.0, y=RIGHT + 0.5), far, keep, LEFT) is None  # turning back, not yet settled
-    assert fallback(mode, car(1.0, yd=0.5), far, keep, LEFT) is None
-    assert fallback(mode, car(1.0), far, keep, None) is None  # a cost without a goal lane
-    assert fallback(mode, car(1.0, speed=0.0), far, keep, LEFT) is None  # standing still
+    assert fallback(style, car(1.95), far, keep, LEFT) is quick and fallback(style, car(2.05), far, keep, LEFT) is None
+    assert fallback(style, car(1.0), far, go, LEFT) is None  # set out: window 0 heads for the goal lane
+    assert fallback(style, car(1.0, y=RIGHT + 0.5), far, keep, LEFT) is None  # turning back, not yet settled
+    assert fallback(style, car(1.0, yd=0.5), far, keep, LEFT) is None
+    assert fallback(style, car(1.0), far, keep, None) is None  # a cost without a goal lane
+    assert fallback(style, car(1.0, speed=0.0), far, keep, LEFT) is None  # standing still
     assert fallback(comfort, car(0.5), far, keep, LEFT) is None  # no fallback
     # a stand-off: beside the human at its speed 2.9 s before the cutoff; not when drifting apart, or earlier
-    assert mode.blocks_set_out(car(2.9), car(2.9, y=LEFT)) and not mode.blocks_set_out(car(2.9), far)
-    assert not mode.blocks_set_out(car(2.9), car(2.9))  # the human in the robot's lane
-    assert fallback(mode, car(2.9), car(2.9, y=LEFT), keep, LEFT) is quick
-    assert fallback(mode, car(2.9), car(2.9, speed=25.0, y=LEFT), keep, LEFT) is None  # clear in time
-    assert mode.blocks_set_out(car(2.9), car(2.9, speed=25.0, y=LEFT))
-    assert fallback(mode, car(3.1), car(3.1, y=LEFT), keep, LEFT) is None
-    # settled in the goal lane behind a human that brakes harder than the comfort motion can: braking is not held to comfort
-    ahead = car(4.0, y=LEFT) + [20.0, 0.0, 0.0, 0.0, -(comfort.motion.hardest_braking + 0.5), 0.0]
-    assert fallback(mode, car(5.0, y=LEFT), ahead, go, LEFT) is quick
-    assert fallback(mode, car(5.0, y=LEFT), ahead + [0, 0, 0, 0, 1.0, 0], go, LEFT) is None  # within the motion's braking
-    assert fallback(mode, car(5.0, y=LEFT, yd=0.5), ahead, go, LEFT) is quick  # not settled: nor put off
-    assert fallback(mode, car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), ahead, go, LEFT) is quick  # moving across
-    assert fallback(mode, car(5.0), ahead, keep, LEFT) is None  # in the other lane: not in the robot's way
-    assert fallback(mode, car(5.0), ahead, go, LEFT) is quick  # the robot heading into its lane
-    assert fallback(mode, car(3.0, y=LEFT), ahead, go, LEFT) is None  # behind the robot
+    assert style.blocks_set_out(car(2.9), car(2.9, y=LEFT)) and not style.blocks_set_out(car(2.9), far)
+    assert not style.blocks_set_out(car(2.9), car(2.9))  # the human in the robot's lane
+    assert fallback(style, car(2.9), car(2.9, y=LEFT), keep, LEFT) is quick
+    assert fallback(style, car(2.9), car(2.9, speed=25.0, y=LEFT), keep, LEFT) is None  # clear in time
+    assert style.blocks_set_out(car(2.9), car(2.9, speed=25.0, y=LEFT))
+    assert fallback(style, car(3.1), car(3.1, y=LEFT), keep, LEFT) is None
+    # settled in the goal lane behind a human that brakes harder than the comfort kinematics can: braking is not held to comfort
+    ahead = car(4.0, y=LEFT) + [20.0, 0.0, 0.0, 0.0, -(comfort.kinematics.hardest_braking + 0.5), 0.0]
+    assert fallback(style, car(5.0, y=LEFT), ahead, go, LEFT) is quick
+    assert fallback(style, car(5.0, y=LEFT), ahead + [0, 0, 0, 0, 1.0, 0], go, LEFT) is None  # within the kinematics' braking
+    assert fallback(style, car(5.0, y=LEFT, yd=0.5), ahead, go, LEFT) is quick  # not settled: nor put off
+    assert fallback(style, car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), ahead, go, LEFT) is quick  # moving across
+    assert fallback(style, car(5.0), ahead, keep, LEFT) is None  # in the other lane: not in the robot's way
+    assert fallback(style, car(5.0), ahead, go, LEFT) is quick  # the robot heading into its lane
+    assert fallback(style, car(3.0, y=LEFT), ahead, go, LEFT) is None  # behind the robot
     # with a safety fallback, braking for safety alone falls back on it; time, or both, on the fallback
-    safe = replace(mode, safety_fallback=replace(comfort, motion=MOTIONS["safety"]))
+    safe = replace(style, safety_fallback=replace(comfort, kinematics=KINEMATICS["safety"]))
     assert fallback(safe, car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), ahead, go, LEFT) is safe.safety_fallback
     assert fallback(safe, car(1.95), far, keep, LEFT) is quick
-    braking_ahead = car(1.5) + [0.0, 0.0, 0.0, 0.0, -(comfort.motion.hardest_braking + 0.5), 0.0]  # in the robot's lane
+    braking_ahead = car(1.5) + [0.0, 0.0, 0.0, 0.0, -(comfort.kinematics.hardest_braking + 0.5), 0.0]  # in the robot's lane
     assert fallback(safe, car(3.0), braking_ahead, keep, LEFT) is safe.safety_fallback
     assert fallback(safe, car(1.95), braking_ahead, keep, LEFT) is quick
-    for fallbacks in ({"fallback": mode}, {"safety_fallback": mode}, {"safety_fallback": replace(comfort, safety_fallback=quick)}):
+    for fallbacks in ({"fallback": style}, {"safety_fallback": style}, {"safety_fallback": replace(comfort, safety_fallback=quick)}):
         with pytest.raises(InputError):
-            Mode(**fallbacks)  # a fallback has none of its own
+            DrivingStyle(**fallbacks)  # a fallback has none of its own
     with pytest.raises(InputError):
-        Mode(standoff_within=-1.0)
+        DrivingStyle(standoff_within=-1.0)
 
-    # the planner plans in the mode it is given, moving as that mode
-    planner, cost = Planner(ToyHuman(), seed=0, mode=mode), GoalToyCost(LEFT)
-    for given, motion in ((None, comfort.motion), (quick, quick.motion)):
-        plan = planner.plan(HISTORY_TOY, keep, cost, mode=given)
-        assert plan.mode is (given or mode)
-        np.testing.assert_array_equal(plan.robot, robot_candidates(PRESENT_TOY, keep, motion).states[plan.index])
+    # the planner plans in the style it is given, moving as that style
+    planner, cost = Planner(ToyHuman(), seed=0, style=style), GoalToyCost(LEFT)
+    for given, kinematics in ((None, comfort.kinematics), (quick, quick.kinematics)):
+        plan = planner.plan(HISTORY_TOY, keep, cost, style=given)
+        assert plan.style is (given or style)
+        np.testing.assert_array_equal(plan.robot, robot_candidates(PRESENT_TOY, keep, kinematics).states[plan.index])
     with pytest.raises(InputError):
-        planner.plan(HISTORY_TOY, keep, cost, mode="decisive")
+        planner.plan(HISTORY_TOY, keep, cost, style="decisive")
 
 
 def test_mpc_plans_in_the_fallback_from_the_first_plan_that_needs_it_to_the_end_of_the_episode():
@@ -780,8 +781,8 @@ def test_mpc_plans_in_the_fallback_from_the_first_plan_that_needs_it_to_the_end_
     out beside yet, the fallback within 2.5 s: the first plans are comfortable, then every plan
     falls back, also once the lane change is under way; a new episode starts over."""
     torch.manual_seed(0)
-    mode = replace(MODES["comfort"], fallback=MODES["decisive"], fallback_within=2.5)
-    policy = MPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), mode=mode))
+    style = replace(STYLES["planner-comfort"], fallback=STYLES["planner-decisive"], fallback_within=2.5)
+    policy = MPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=style))
     start = np.array([[[CUTOFF_X - 29.0 * 3.0 - 29.0 * DT * (HOLD_STEPS - 1), RIGHT, 29.0, 0, 0, 0],
                        [CUTOFF_X - 29.0 * 3.0 - 29.0 * DT * (HOLD_STEPS - 1) + 4.0, LEFT, 24.0, 0, 0, 0]]])
     for _ in range(2):
@@ -791,8 +792,8 @@ def test_mpc_plans_in_the_fallback_from_the_first_plan_that_needs_it_to_the_end_
             world.step(np.stack([policy.act(world.history), np.zeros((1, 2))], axis=1))
         seconds = [(CUTOFF_X - world.history[0, 0, t, 0]) / world.history[0, 0, t, 2] for t in policy.plan_steps]
         fell = next(k for k, s in enumerate(seconds) if s < 2.5)
-        assert fell > 0 and all(p.mode is mode for p in policy.plans[:fell])
-        assert all(p.mode is MODES["decisive"] for p in policy.plans[fell:]) and policy.fallen_back
+        assert fell > 0 and all(p.style is style for p in policy.plans[:fell])
+        assert all(p.style is STYLES["planner-decisive"] for p in policy.plans[fell:]) and policy.fallen_back
         assert any(Action(int(p.actions[0])).lane == "left" for p in policy.plans[fell:])  # under way, still
         assert world.history[0, 0, -1, 1] > LANE_DIVIDER_Y  # across
 
@@ -801,8 +802,8 @@ def test_mpc_keeps_to_the_safety_fallback_until_time_asks_for_the_fallback():
     """Comfort first: a human braking hard ahead while the robot moves across switches to the safety
     fallback (the decisive braking, the comfort steering), which stays when the human stops braking;
     time running short switches to the decisive fallback, which stays to the end of the episode."""
-    first = MODES["comfort-first"]
-    policy = MPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), mode=first))
+    first = STYLES["planner"]
+    policy = MPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=first))
     keep, go = Action.of(0.0, "right").index, Action.of(0.0, "left").index
 
     def car(seconds_to_cutoff, y=RIGHT, yd=0.0, xdd=0.0):
@@ -810,14 +811,14 @@ def test_mpc_keeps_to_the_safety_fallback_until_time_asks_for_the_fallback():
 
     policy.reset(np.random.default_rng(0), np.stack([car(8.0), car(8.0, y=LEFT)])[None], 0)
     braking = np.stack([car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), car(4.5, y=LEFT, xdd=-5.0)])[None]
-    assert policy.plan_mode(np.stack([car(6.0), car(2.0, y=LEFT)])[None], keep) is first and policy.fallen_back is None
-    assert policy.plan_mode(braking, go) is first.safety_fallback
-    assert first.safety_fallback.motion == MOTIONS["safety"] and first.safety_fallback.follow_braking == 6.0
-    assert policy.plan_mode(np.stack([car(6.0), car(2.0, y=LEFT)])[None], keep) is first.safety_fallback
-    assert policy.plan_mode(np.stack([car(1.9), car(5.0, y=LEFT)])[None], keep) is first.fallback
-    assert policy.plan_mode(braking, go) is first.fallback
+    assert policy.plan_style(np.stack([car(6.0), car(2.0, y=LEFT)])[None], keep) is first and policy.fallen_back is None
+    assert policy.plan_style(braking, go) is first.safety_fallback
+    assert first.safety_fallback.kinematics == KINEMATICS["safety"] and first.safety_fallback.follow_braking == 6.0
+    assert policy.plan_style(np.stack([car(6.0), car(2.0, y=LEFT)])[None], keep) is first.safety_fallback
+    assert policy.plan_style(np.stack([car(1.9), car(5.0, y=LEFT)])[None], keep) is first.fallback
+    assert policy.plan_style(braking, go) is first.fallback
     policy.reset(np.random.default_rng(0), np.stack([car(8.0), car(8.0, y=LEFT)])[None], 0)
-    assert policy.fallen_back is None and policy.plan_mode(braking, go) is first.safety_fallback
+    assert policy.fallen_back is None and policy.plan_style(braking, go) is first.safety_fallback
 
 
 def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():
@@ -826,15 +827,15 @@ def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():
     assert risk_cost(scores, 0.1).tolist() == [4.0, 40.0]
     budget = Budget(8, 8, 8)
     plain = Planner(ToyHuman(), seed=0).plan(HISTORY_TOY, 0, toy_cost, budget=budget)
-    cautious = Planner(ToyHuman(), seed=0, mode=Mode(risk=0.25)).plan(HISTORY_TOY, 0, toy_cost, budget=budget)
+    cautious = Planner(ToyHuman(), seed=0, style=DrivingStyle(risk=0.25)).plan(HISTORY_TOY, 0, toy_cost, budget=budget)
     assert np.all(cautious.first_stage_cost >= plain.first_stage_cost - 1e-6)
     assert (cautious.first_stage_cost > plain.first_stage_cost + 1.0).mean() > 0.9
     for bad in (dict(risk=0.0), dict(risk=1.5), dict(turn_back_cost=-1.0), dict(turn_back_cost=float("inf")),
                 dict(set_out_gap=-5.0), dict(set_out_until=0.5)):
-        with pytest.raises(InputError, match="a planner mode needs"):
-            Mode(**bad)
-    with pytest.raises(InputError, match="mode must be a planner Mode"):
-        Planner(ToyHuman(), mode="paper")
+        with pytest.raises(InputError, match="a driving style needs"):
+            DrivingStyle(**bad)
+    with pytest.raises(InputError, match="style must be a DrivingStyle"):
+        Planner(ToyHuman(), style="paper")
 
 
 # ---------------------------------------------------------------- deadlines and MPC
@@ -845,7 +846,7 @@ def _history(steps=10):
     return np.stack([robot + t * [29.0, 0, 0, 0, 0, 0], human + t * [29.0, 0, 0, 0, 0, 0]], axis=1)
 
 
-def test_real_time_mode_returns_within_the_deadline():
+def test_a_real_time_plan_returns_within_the_deadline():
     torch.manual_seed(0)
     planner = Planner(HumanPredictor(CVAE()))
     history = _history()
@@ -969,17 +970,17 @@ def test_settled_steering_comes_to_rest_on_the_lane_centre_where_the_papers_keep
     lateral manoeuvres of at least SETTLING_TIME the same lane change comes to rest."""
     from trafficweaving.dynamics import trapezoid_step
 
-    def executed(motion, windows=30):
+    def executed(kinematics, windows=30):
         state, accelerations = np.array([-300.0, RIGHT, 30.0, 0.0, 0.0, 0.0]), []
         for _ in range(windows):
-            for planned in rollout(state, np.array([[Action.of(0.0, "left").index]]), motion)[0]:
+            for planned in rollout(state, np.array([[Action.of(0.0, "left").index]]), kinematics)[0]:
                 y, yd = trapezoid_step(state[1], state[3], state[5], planned[5])
                 state = np.array([planned[0], y, planned[2], yd, planned[4], planned[5]])
                 accelerations.append(planned[5])
         return np.array(accelerations), state
 
-    paper, _ = executed(MOTIONS["paper"])
-    settled, end = executed(MOTIONS["settled"])
+    paper, _ = executed(KINEMATICS["paper"])
+    settled, end = executed(KINEMATICS["settled"])
     assert np.abs(paper[-30:]).max() > 0.5 and np.abs(settled[-30:]).max() < 0.01
     assert abs(end[1] - LANE_CENTRE_Y["left"]) < 0.01 and abs(end[3]) < 0.01
     assert np.abs(settled).max() == pytest.approx(np.abs(paper[:30]).max(), rel=0.1)  # the same lane change
@@ -989,10 +990,10 @@ def test_settled_steering_comes_to_rest_on_the_lane_centre_where_the_papers_keep
 def test_comfort_candidates_keep_to_the_comfort_limits_from_every_state_they_reach():
     """From the right lane towards the left one, lane changes turned back included; the paper's
     candidates break the limits in most sequences."""
-    from trafficweaving.sim.metrics import comfort_violations  # the closed loop's own definition
+    from trafficweaving.sim.score import comfort_violations  # the closed loop's own definition
 
-    def onward(present, first, motion):  # per candidate: a step over the limits (the present included)
-        states = robot_candidates(present, first, motion).states
+    def onward(present, first, kinematics):  # per candidate: a step over the limits (the present included)
+        states = robot_candidates(present, first, kinematics).states
         acc = np.concatenate([np.broadcast_to(present[4:6], (len(states), 1, 2)), states[..., 4:6]], 1)
         return np.array([comfort_violations(a).any() for a in acc]), states
 
@@ -1000,27 +1001,27 @@ def test_comfort_candidates_keep_to_the_comfort_limits_from_every_state_they_rea
     rng = np.random.default_rng(0)
     presents = [start]
     for first in (0, 1, 3, 6):  # states after a window and after two, as the MPC executes them
-        _, states = onward(start, first, MOTIONS["comfort"])
+        _, states = onward(start, first, KINEMATICS["comfort"])
         picks = rng.choice(len(states), 3, replace=False)
         presents += [states[i, 2] for i in picks] + [states[i, 5] for i in picks]
     assert max(p[3] for p in presents) > 0.5  # some of them under way
     checked = 0
     for present in presents:
         for first in (0, 3, N_ACTIONS - 1):
-            violations, _ = onward(present, first, MOTIONS["comfort"])
+            violations, _ = onward(present, first, KINEMATICS["comfort"])
             assert not violations.any()
             checked += len(violations)
     assert checked == 3 * len(presents) * N_CANDIDATES
-    assert onward(start, 0, MOTIONS["paper"])[0].mean() > 0.5
-    comfort = robot_candidates(presents[-1], 0, MOTIONS["comfort"]).states
+    assert onward(start, 0, KINEMATICS["paper"])[0].mean() > 0.5
+    comfort = robot_candidates(presents[-1], 0, KINEMATICS["comfort"]).states
     np.testing.assert_allclose(np.diff(comfort[..., 2], axis=1), DT * comfort[:, :-1, 4], atol=1e-12)  # Euler velocity
 
 
 def test_a_comfort_planner_drives_the_closed_loop_within_the_limits():
-    from trafficweaving.sim.metrics import comfort_violations
+    from trafficweaving.sim.score import comfort_violations
 
     torch.manual_seed(0)
-    policy = MPCPolicy(Planner(HumanPredictor(CVAE()), mode=MODES["comfort"]), budget=Budget(1, 2, 2))
+    policy = MPCPolicy(Planner(HumanPredictor(CVAE()), style=STYLES["planner-comfort"]), budget=Budget(1, 2, 2))
     world = World(_history(1))
     policy.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
     for _ in range(40):

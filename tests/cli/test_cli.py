@@ -325,7 +325,8 @@ def test_nested_recipe_search_chooses_candidate_and_calibration_on_inner_folds(c
 
 
 def test_default_model_is_shipped_trained_and_evaluates(capsys, tmp_path):
-    from trafficweaving.model.checkpoint import default_model_path, read_checkpoint
+    from trafficweaving.model.checkpoint import read_checkpoint
+    from trafficweaving.model.registry import default_model_path
 
     payload = read_checkpoint(default_model_path())
     assert "optimizer" not in payload and payload["data_command"].startswith("trafficweaving import hitl")
@@ -351,7 +352,8 @@ def test_default_model_is_shipped_trained_and_evaluates(capsys, tmp_path):
 
 
 def test_simulated_real_model_is_shipped_without_the_authors_weights(capsys):
-    from trafficweaving.model.checkpoint import read_checkpoint, shipped_model_path
+    from trafficweaving.model.checkpoint import read_checkpoint
+    from trafficweaving.model.registry import shipped_model_path
 
     payload = read_checkpoint(shipped_model_path("simulated-real"))
     assert not payload["init"]["path"].startswith("authors:") and "--init authors:" not in payload["recipe"]

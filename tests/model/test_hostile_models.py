@@ -13,8 +13,9 @@ import torch
 
 from trafficweaving.cli import build_parser, main
 from trafficweaving.errors import InputError
-from trafficweaving.model.checkpoint import (HASH_FIELD, MIXTURE_VERSION, load_checkpoint, load_model, save_checkpoint,
-                                             shipped_model_path, tensor_digest, write_payload)
+from trafficweaving.model.checkpoint import (HASH_FIELD, MIXTURE_VERSION, load_checkpoint, save_checkpoint, tensor_digest,
+                                             write_payload)
+from trafficweaving.model.registry import load_model, shipped_model_path
 from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.model.mixture import Mixture
 
@@ -235,7 +236,7 @@ def test_a_plan_budget_beyond_the_bound_is_refused_before_the_model_loads(capsys
 def test_crossval_refuses_keeping_more_model_copies_than_the_bound_before_fitting(tmp_path):
     from helpers_model import synthetic_trials
     from trafficweaving.model.crossval import MAX_KEPT_MODELS, crossval
-    from trafficweaving.model.train import TrainConfig
+    from trafficweaving.model.train_config import TrainConfig
 
     with pytest.raises(InputError, match=rf"--out keeps the weights of 5 fits .*: 500010 model copies \(expected at "
                                          rf"most {MAX_KEPT_MODELS}") as info:

@@ -16,7 +16,8 @@ from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.model.evaluate import evaluate, physical_offset
 from trafficweaving.model.exemplars import build_exemplars
 from trafficweaving.model.gmm import HOLD_OFF_LOGIT
-from trafficweaving.model.train import TrainConfig, initial_model, loss_terms, make_optimizer, prepare_data, train
+from trafficweaving.model.train import initial_model, loss_terms, make_optimizer, prepare_data, train
+from trafficweaving.model.train_config import TrainConfig
 
 QUICK = TrainConfig(steps=4, validate_every=2, checkpoint_every=2, validation_exemplars=64, lr_initial=1e-4,
                     lr_final=1e-5)

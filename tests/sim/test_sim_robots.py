@@ -14,10 +14,11 @@ from trafficweaving.model.cvae import CVAE
 from trafficweaving.model.predictor import HumanPredictor
 from trafficweaving.planning.candidates import STEPS_PER_WINDOW, Action, rollout
 from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
-from trafficweaving.planning.planner import SET_OUT_GAP, Budget, Planner, example_history
+from trafficweaving.planning.planner import Budget, Planner, example_history
+from trafficweaving.planning.styles import SET_OUT_GAP
 from trafficweaving.scenario import (CAR_WIDTH, COLLISION_DY, DT, LANE_CENTRE_Y, LANE_DIVIDER_Y, SWAP_THRESHOLD_Y,
                                      VALIDITY_REASONS, check_validity, lane_of, study_initial_conditions)
-from trafficweaving.sim.metrics import comfort_violations
+from trafficweaving.sim.score import comfort_violations
 from trafficweaving.sim.robots import ROBOT_SPECS, RuleBasedRobot, RuleParameters, robot_agent
 from trafficweaving.sim.world import World, run_episodes
 
@@ -91,7 +92,7 @@ def test_robots_keep_the_agent_contract_and_are_deterministic_given_the_seed(mak
 
 
 def test_the_mpc_holds_then_plans_every_window_from_the_true_state():
-    robot, human = robot_agent("planner-cv", budget=TINY), ScriptedHuman()  # decisive: settled motion
+    robot, human = robot_agent("planner-cv", budget=TINY), ScriptedHuman()  # decisive: settled kinematics
     world, made = World(STARTS[[7]]), []  # the robot (car 1) starts in the left lane
     human.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
     robot.reset(np.random.default_rng(0), world.states[:, :, 0], 1)
@@ -106,7 +107,7 @@ def test_the_mpc_holds_then_plans_every_window_from_the_true_state():
     for k, (plan, t) in enumerate(zip(robot.plans, (8, 11, 14))):
         if k:
             assert plan.actions[0] == robot.plans[k - 1].actions[1]  # window 0: the window being executed
-        np.testing.assert_allclose(plan.robot, rollout(car[t], plan.actions[None], robot.planner.motion)[0], atol=1e-9)  # from the true state
+        np.testing.assert_allclose(plan.robot, rollout(car[t], plan.actions[None], robot.planner.kinematics)[0], atol=1e-9)  # from the true state
         np.testing.assert_array_equal(car[t + 1: t + 4, 4:], plan.robot[:3, 4:])  # executed: the plan's accelerations
 
 
@@ -142,20 +143,21 @@ def test_planner_robots_swap_lanes_without_collision_and_set_out_only_with_room(
         assert not robot.fallen_back and not comfort_violations(states[me, :, 4:6]).any()
 
 
-def test_the_planning_robots_drive_in_their_modes():
-    from trafficweaving.planning.candidates import MOTIONS
-    from trafficweaving.planning.planner import MODES
+def test_the_planning_robots_drive_in_their_styles():
+    from trafficweaving.planning.candidates import KINEMATICS
+    from trafficweaving.planning.styles import STYLES
     from trafficweaving.sim.robots import robot_planner
 
-    assert robot_planner("planner-decisive").mode == robot_planner("planner-cv").mode == MODES["decisive"]
-    first = robot_planner("planner").mode
-    assert first == MODES["comfort-first"] and first.motion == MOTIONS["comfort"]
-    assert first.fallback == replace(MODES["decisive"], standoff_exit_cost=first.standoff_exit_cost,
+    assert robot_planner("planner-decisive").style == robot_planner("planner-cv").style == STYLES["planner-decisive"]
+    first = robot_planner("planner").style
+    assert first == STYLES["planner"] and first.kinematics == KINEMATICS["comfort"]
+    assert first.fallback == replace(STYLES["planner-decisive"], standoff_exit_cost=first.standoff_exit_cost,
                                      progress_cost=first.progress_cost)
-    assert robot_planner("planner-paper").mode == MODES["paper"] and MODES["paper"].motion == MOTIONS["paper"]
-    assert MODES["paper"].turn_back_cost == 0 and MODES["paper"].risk == 1  # the paper's objective, unchanged
-    assert robot_planner("planner-comfort").motion == MOTIONS["comfort"]
-    assert robot_planner("planner-cautious").mode.risk < 1
+    paper = STYLES["planner-paper"]
+    assert robot_planner("planner-paper").style == paper and paper.kinematics == KINEMATICS["paper"]
+    assert paper.turn_back_cost == 0 and paper.risk == 1  # the paper's objective, unchanged
+    assert robot_planner("planner-comfort").kinematics == KINEMATICS["comfort"]
+    assert robot_planner("planner-cautious").style.risk < 1
 
 
 # ---------------------------------------------------------------- bad input

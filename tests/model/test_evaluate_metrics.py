@@ -10,7 +10,7 @@ import torch
 
 from helpers_model import synthetic_trials
 from trafficweaving.cli import main
-from trafficweaving.model.checkpoint import load_model
+from trafficweaving.model.registry import load_model
 from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.model.evaluate import evaluate
 from trafficweaving.model.exemplars import ExemplarSet, build_exemplars
@@ -173,7 +173,7 @@ def test_real_humans_report_script_writes_tables_figures_and_its_command(tmp_pat
 
     data, report = tmp_path / "d.parquet", tmp_path / "docs" / "report.md"
     trials.subset(np.arange(3)).write_parquet(data)
-    script = Path(__file__).parent.parent / "scripts" / "real_humans_report.py"
+    script = Path(__file__).parents[2] / "scripts" / "real_humans_report.py"
     argv = ["--data", str(data), "--model", "a=default", "--model", "b=default", "--samples", "10", "--ade-samples", "5",
             "--out", str(report)]
     done = subprocess.run([sys.executable, str(script), *argv], capture_output=True, text=True, timeout=300)

@@ -20,9 +20,9 @@ from trafficweaving.scenario import (CAR_LENGTH, COLLISION_DX, CUTOFF_X, DT, LAN
                                     START_X, SWAP_THRESHOLD_Y, lane_of, study_initial_conditions, time_to_collision)
 from trafficweaving.sim.batch import EpisodeFailed, episode_path, simulate
 from trafficweaving.sim.episodes import EpisodeSpec, run_episode
-from trafficweaving.sim.metrics import (COMFORT_LIMITS, SCORE_WEIGHTS, Z95, aggregate, comfort_violations, comfort_violations_by_limit,
-                                        episode_metrics, lane_reversals,
-                                       latency_summary, mean_interval, wilson_interval)
+from trafficweaving.sim.metrics import (Z95, aggregate, episode_metrics, lane_reversals, latency_summary, mean_interval,
+                                        wilson_interval)
+from trafficweaving.sim.score import COMFORT_LIMITS, SCORE_WEIGHTS, comfort_violations, comfort_violations_by_limit
 
 LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
 T = 80  # steps of a hand-built record: 8 s at 30 m/s from START_X ends 95 m past the cutoff
@@ -202,11 +202,11 @@ def test_lane_reversals_count_turns_back_towards_the_start_lane():
 
 
 def test_lateral_swings_count_sign_changes_of_the_lateral_acceleration_above_the_threshold():
-    from trafficweaving.planning.candidates import MOTIONS, Action, rollout
+    from trafficweaving.planning.candidates import KINEMATICS, Action, rollout
     from trafficweaving.sim.metrics import SWING_ACCEL, lateral_swings
 
     change = rollout(np.array([START_X, RIGHT, 30.0, 0.0, 0.0, 0.0]), np.array([[Action.of(0.0, "left").index] * 15]),
-                     MOTIONS["settled"])[0, :, 5]  # one steady lane change
+                     KINEMATICS["settled"])[0, :, 5]  # one steady lane change
     assert lateral_swings(change) == 1
     chatter = np.tile([0.7, -0.7, 0.0], 10)
     assert lateral_swings(np.concatenate([change, chatter])) == 1 + 20

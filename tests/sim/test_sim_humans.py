@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from trafficweaving.data.trials import load_trials
 from trafficweaving.dynamics import constant_acceleration_future, future_states, without_reversing
 from trafficweaving.errors import InputError
-from trafficweaving.model.checkpoint import load_model
+from trafficweaving.model.registry import load_model
 from trafficweaving.scenario import (CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANE_DIVIDER_Y, MIN_HISTORY, START_X,
                                    SWAP_THRESHOLD_Y, on_road, study_initial_conditions)
 from trafficweaving.sim.drivers import DriverModel, DriverStyles

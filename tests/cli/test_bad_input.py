@@ -24,7 +24,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trafficweaving.atomic import atomic_write
-from trafficweaving.cli import SEED_MAX, build_parser, main
+from trafficweaving.cli import build_parser, main
+from trafficweaving.cli.common import SEED_MAX
 from trafficweaving.model.crossval import MAX_FOLDS
 from trafficweaving.model.metrics import MAX_SAMPLES
 from trafficweaving.sim.generate import MAX_PAIRS, MAX_TRIALS

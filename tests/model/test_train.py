@@ -8,11 +8,13 @@ import torch
 
 from helpers_model import synthetic_trials
 from trafficweaving.errors import InputError
-from trafficweaving.model.checkpoint import load_checkpoint, load_model, save_checkpoint, write_payload
+from trafficweaving.model.checkpoint import load_checkpoint, save_checkpoint, write_payload
 from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.model.exemplars import build_exemplars
 from trafficweaving.model.evaluate import evaluate
-from trafficweaving.model.train import TrainConfig, kl_weight, learning_rate, loss_terms, prepare_data, temperature, train
+from trafficweaving.model.registry import load_model
+from trafficweaving.model.train import kl_weight, learning_rate, loss_terms, prepare_data, temperature, train
+from trafficweaving.model.train_config import TrainConfig
 
 QUICK = TrainConfig(steps=6, validate_every=3, checkpoint_every=3, validation_exemplars=64)
 

@@ -15,7 +15,8 @@ import torch
 from trafficweaving.model.constant_velocity import ConstantVelocityHuman
 from trafficweaving.planning.candidates import ACCELERATIONS, Action, rollout
 from trafficweaving.planning.mpc import HOLD_STEPS, NonBlockingMPCPolicy
-from trafficweaving.planning.planner import MODES, STANDOFF_WITHIN, Budget, Planner
+from trafficweaving.planning.planner import Budget, Planner
+from trafficweaving.planning.styles import STANDOFF_WITHIN, STYLES
 from trafficweaving.scenario import CUTOFF_X, DT, LANE_CENTRE_Y, LANE_DIVIDER_Y
 from trafficweaving.sim.world import World
 
@@ -85,19 +86,19 @@ def test_the_comfort_first_robot_executes_each_window_as_the_mode_that_planned_i
     as the stand-off would last until 2 s before the cutoff (:data:`STANDOFF_WITHIN`) the decisive
     fallback takes over and sets out; every executed window is rolled out with the motion of the
     plan that chose it."""
-    mode = MODES["comfort-first"]
-    policy = NonBlockingMPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), mode=mode))
+    mode = STYLES["planner"]
+    policy = NonBlockingMPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=mode))
     start = START + [[[3.0, 0, 0, 0, 0, 0], [-8.0, 0, 4.0, 0, 0, 0]]]
     world, _ = drive(policy, 40, wait_at=range(HOLD_STEPS, 40, 3), start=start)
     robot = world.history[0, 0]
-    modes = [plan.mode for plan in policy.plans]
+    modes = [plan.style for plan in policy.plans]
     fell = modes.index(mode.fallback)
     assert fell > 0 and set(modes[:fell]) == {mode} and set(modes[fell:]) == {mode.fallback} and policy.fallen_back
     made = policy.plan_steps[fell]
     assert (CUTOFF_X - robot[made, 0]) / robot[made, 2] < STANDOFF_WITHIN and robot[-1, 1] > LANE_DIVIDER_Y
     for made, plan in zip(policy.plan_steps[:-1], policy.plans[:-1]):
         t = made + 3
-        expected = rollout(robot[t], np.array([[int(plan.actions[1])]]), plan.mode.motion)[0]
+        expected = rollout(robot[t], np.array([[int(plan.actions[1])]]), plan.style.kinematics)[0]
         np.testing.assert_allclose(robot[t + 1: t + 4, 4:6], expected[:, 4:6], atol=1e-9)
     policy.close()
 

@@ -14,9 +14,10 @@ import torch
 
 from trafficweaving.errors import InputError
 from trafficweaving.model.authors import load_authors_model
-from trafficweaving.model.checkpoint import (HASH_FIELD, READABLE_VERSIONS, VERSION, choose_device, export_checkpoint,
-                                             load_checkpoint, load_model, read_checkpoint, save_checkpoint,
-                                             shipped_model_path, tensor_digest, write_payload)
+from trafficweaving.model.checkpoint import (HASH_FIELD, READABLE_VERSIONS, VERSION, export_checkpoint, load_checkpoint,
+                                             read_checkpoint, save_checkpoint, tensor_digest, write_payload)
+from trafficweaving.model.device import choose_device
+from trafficweaving.model.registry import load_model, shipped_model_path
 from trafficweaving.model.cvae import CVAE, CVAEConfig
 
 
