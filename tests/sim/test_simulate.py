@@ -418,7 +418,7 @@ def test_the_planner_samples_at_the_precision_asked_for(tmp_path):
     """precision reaches the planner's human model and is logged; an unknown one is refused before
     any episode runs. (An episode at int8 or bfloat16 runs the compiled decoder steps: minutes on a
     CPU without AVX-512, so the episode runs at an explicit float32; int8 sampling itself is tested
-    in test_planning.)"""
+    in tests/model/test_predictor.py.)"""
     for precision in ("int8", "float32"):
         robot, _ = EpisodeSpec("planner", "synthetic", 0, budget=Budget(1, 1, 2), precision=precision).agents()
         assert robot.planner.human_model.precision == precision

@@ -1,0 +1,95 @@
+"""MPC (planning/mpc.py): holding, replanning every window, and a style's fallbacks in the closed loop."""
+
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from trafficweaving.model.constant_velocity import ConstantVelocityHuman
+from trafficweaving.model.cvae import CVAE
+from trafficweaving.model.predictor import HumanPredictor
+from trafficweaving.planning.candidates import KINEMATICS, Action, rollout
+from trafficweaving.planning.mpc import HOLD_STEPS, MPCPolicy
+from trafficweaving.planning.planner import Budget, Planner
+from trafficweaving.planning.styles import STYLES
+from trafficweaving.scenario import CUTOFF_X, DT, LANE_DIVIDER_Y
+from trafficweaving.sim.world import World
+
+from helpers_planning import LEFT, RIGHT, _history
+
+
+def test_mpc_plans_in_the_fallback_from_the_first_plan_that_needs_it_to_the_end_of_the_episode():
+    """A robot 3 s before the cutoff beside a slower human (4 m ahead, 5 m/s slower) it cannot set
+    out beside yet, the fallback within 2.5 s: the first plans are comfortable, then every plan
+    falls back, also once the lane change is under way; a new episode starts over."""
+    torch.manual_seed(0)
+    style = replace(STYLES["planner-comfort"], fallback=STYLES["planner-decisive"], fallback_within=2.5)
+    policy = MPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=style))
+    start = np.array([[[CUTOFF_X - 29.0 * 3.0 - 29.0 * DT * (HOLD_STEPS - 1), RIGHT, 29.0, 0, 0, 0],
+                       [CUTOFF_X - 29.0 * 3.0 - 29.0 * DT * (HOLD_STEPS - 1) + 4.0, LEFT, 24.0, 0, 0, 0]]])
+    for _ in range(2):
+        world = World(start)
+        policy.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
+        for _ in range(HOLD_STEPS + 30):
+            world.step(np.stack([policy.act(world.history), np.zeros((1, 2))], axis=1))
+        seconds = [(CUTOFF_X - world.history[0, 0, t, 0]) / world.history[0, 0, t, 2] for t in policy.plan_steps]
+        fell = next(k for k, s in enumerate(seconds) if s < 2.5)
+        assert fell > 0 and all(p.style is style for p in policy.plans[:fell])
+        assert all(p.style is STYLES["planner-decisive"] for p in policy.plans[fell:]) and policy.fallen_back
+        assert any(Action(int(p.actions[0])).lane == "left" for p in policy.plans[fell:])  # under way, still
+        assert world.history[0, 0, -1, 1] > LANE_DIVIDER_Y  # across
+
+
+def test_mpc_keeps_to_the_safety_fallback_until_time_asks_for_the_fallback():
+    """Comfort first: a human braking hard ahead while the robot moves across switches to the safety
+    fallback (the decisive braking, the comfort steering), which stays when the human stops braking;
+    time running short switches to the decisive fallback, which stays to the end of the episode."""
+    first = STYLES["planner"]
+    policy = MPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=first))
+    keep, go = Action.of(0.0, "right").index, Action.of(0.0, "left").index
+
+    def car(seconds_to_cutoff, y=RIGHT, yd=0.0, xdd=0.0):
+        return np.array([CUTOFF_X - 30.0 * seconds_to_cutoff, y, 30.0, yd, xdd, 0.0])
+
+    policy.reset(np.random.default_rng(0), np.stack([car(8.0), car(8.0, y=LEFT)])[None], 0)
+    braking = np.stack([car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), car(4.5, y=LEFT, xdd=-5.0)])[None]
+    assert policy.plan_style(np.stack([car(6.0), car(2.0, y=LEFT)])[None], keep) is first and policy.fallen_back is None
+    assert policy.plan_style(braking, go) is first.safety_fallback
+    assert first.safety_fallback.kinematics == KINEMATICS["safety"] and first.safety_fallback.follow_braking == 6.0
+    assert policy.plan_style(np.stack([car(6.0), car(2.0, y=LEFT)])[None], keep) is first.safety_fallback
+    assert policy.plan_style(np.stack([car(1.9), car(5.0, y=LEFT)])[None], keep) is first.fallback
+    assert policy.plan_style(braking, go) is first.fallback
+    policy.reset(np.random.default_rng(0), np.stack([car(8.0), car(8.0, y=LEFT)])[None], 0)
+    assert policy.fallen_back is None and policy.plan_style(braking, go) is first.safety_fallback
+
+
+def test_mpc_holds_then_replans_every_window_with_the_fixed_first_window():
+    torch.manual_seed(0)
+    policy = MPCPolicy(Planner(HumanPredictor(CVAE())), budget=Budget(1, 2, 2))
+    world = World(_history(1))  # one episode; the robot is car 0, the human keeps its speed
+    policy.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
+    for _ in range(HOLD_STEPS + 9):
+        world.step(np.stack([policy.act(world.history), np.zeros((1, 2))], axis=1))
+    robot = world.history[0, 0]
+    np.testing.assert_allclose(robot[: HOLD_STEPS + 1, 1], RIGHT)
+    np.testing.assert_allclose(robot[: HOLD_STEPS + 1, 2], 29.0)
+    assert len(policy.plans) == len(policy.latencies) == 3  # at t = 8, 11, 14
+    assert policy.plans[0].actions[0] == Action.of(0.0, "right").index
+    for previous, current in zip(policy.plans, policy.plans[1:]):
+        assert current.actions[0] == previous.actions[1]
+    # what the robot executed in window t = 11..14 is the first plan's window 1, from its state at t = 11
+    executed = rollout(robot[11], policy.plans[0].actions[1:2][None])[0]
+    np.testing.assert_allclose(robot[12:15, 5], executed[:, 5])
+    np.testing.assert_allclose(robot[12:14, 4], executed[:2, 4])
+
+
+def test_a_comfort_planner_drives_the_closed_loop_within_the_limits():
+    from trafficweaving.sim.score import comfort_violations
+
+    torch.manual_seed(0)
+    policy = MPCPolicy(Planner(HumanPredictor(CVAE()), style=STYLES["planner-comfort"]), budget=Budget(1, 2, 2))
+    world = World(_history(1))
+    policy.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
+    for _ in range(40):
+        world.step(np.stack([policy.act(world.history), np.zeros((1, 2))], axis=1))
+    assert len(policy.plans) >= 10 and not comfort_violations(world.history[0, 0, :, 4:6]).any()
