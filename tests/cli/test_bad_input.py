@@ -126,6 +126,7 @@ def _parse(argv: list[str]) -> tuple[int, str, object]:
             return int(exc.code or 0), err.getvalue(), None
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None, derandomize=True)
 @given(option=st.sampled_from(sorted(INTEGER_OPTIONS)),
        value=st.one_of(st.integers(min_value=-2**70, max_value=2**70), st.floats(allow_nan=True, allow_infinity=True),
@@ -144,6 +145,7 @@ def test_integer_options_accept_exactly_their_range(option, value):
         assert code == 2 and err.count("\n") == 1 and option in err
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None, derandomize=True)
 @given(value=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12)))
 def test_real_valued_options_accept_only_finite_numbers_in_their_interval(value):
@@ -204,6 +206,7 @@ def test_an_exception_or_interruption_inside_a_write_leaves_the_old_file_and_no_
 
 
 # ---------------------------------------------------------------- files
+@pytest.mark.slow
 def test_malformed_dt_metadata_is_one_line(capsys, tmp_path, dataset):
     for value in ("abc", "0.1", None, [0.1], -0.1, 0, 1e400, float("nan")):
         bad = _with_dt(dataset, tmp_path / "bad.parquet", value)
@@ -311,6 +314,7 @@ def _wait_until_busy(process: subprocess.Popen, cpu_seconds: float, timeout: flo
     raise AssertionError(f"the command used less than {cpu_seconds} s of CPU in {timeout} s")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_sigterm_and_ctrl_c_end_quietly_by_their_signal_and_leave_no_file(tmp_path, signum):
     process = _start(tmp_path, "generate", "--trials", str(MAX_TRIALS), "--out", "big.parquet")  # minutes of work

@@ -53,6 +53,7 @@ def test_import_hitl_gives_30_trials_and_compares_behaviour(capsys, tmp_path, hi
     assert comparison["speed"]["real"]["count"] > 1000 and comparison["speed"]["wasserstein"] >= 0
 
 
+@pytest.mark.slow
 def test_plot_writes_pngs(capsys, tmp_path):
     data = tmp_path / "d.parquet"
     run(capsys, "generate", "--trials", 40, "--out", data, "--json")
@@ -76,6 +77,7 @@ def test_bad_input_is_one_line_on_stderr_with_exit_2(capsys, tmp_path, argv, exp
     assert expected in err and err.count("\n") == 1 and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_python_dash_m_entry_point(tmp_path):
     result = subprocess.run([sys.executable, "-m", "trafficweaving", "generate", "--trials", "20",
                              "--out", str(tmp_path / "d.parquet"), "--json"], capture_output=True, text=True)
@@ -83,6 +85,7 @@ def test_python_dash_m_entry_point(tmp_path):
 
 
 # ---------------------------------------------------------------- human model commands
+@pytest.mark.slow
 def test_evaluate_authors_model_on_the_real_trials_gives_the_papers_nll(capsys, tmp_path, hitl_files, authors_model_dir):
     weights = authors_model_dir / "weights.npz"
     data = tmp_path / "hitl.parquet"
@@ -98,6 +101,7 @@ def test_evaluate_authors_model_on_the_real_trials_gives_the_papers_nll(capsys, 
     assert code == 0 and json.loads(out)["panels"] == 2 and (tmp_path / "fig3.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_train_then_evaluate_a_checkpoint(capsys, tmp_path):
     data, model = tmp_path / "d.parquet", tmp_path / "m.pt"
     run(capsys, "generate", "--trials", 12, "--seed", 2, "--out", data, "--json")
@@ -163,6 +167,7 @@ def test_crossval_rejects_data_without_human_agents(capsys, tmp_path):
     assert err.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_crossval_json_reports_folds_mean_and_reference(capsys, tmp_path):
     data, model = tmp_path / "d.parquet", tmp_path / "m.pt"
     run(capsys, "generate", "--trials", 9, "--seed", 3, "--out", data, "--json")
@@ -176,6 +181,7 @@ def test_crossval_json_reports_folds_mean_and_reference(capsys, tmp_path):
     assert sorted(p.name for p in (tmp_path / "folds").iterdir()) == ["fold_1.pt", "fold_2.pt", "fold_3.pt"]
 
 
+@pytest.mark.slow
 def test_fine_tuning_a_model_into_a_driver_conditioned_on_the_guess(capsys, tmp_path):
     from trafficweaving.model.checkpoint import load_checkpoint
 
@@ -192,6 +198,7 @@ def test_fine_tuning_a_model_into_a_driver_conditioned_on_the_guess(capsys, tmp_
     assert code == 2 and "cannot tell candidate robot futures apart" in err
 
 
+@pytest.mark.slow
 def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoints(capsys, tmp_path):
     from trafficweaving.model.calibrate import MIX_WEIGHTS
     from trafficweaving.model.checkpoint import load_checkpoint, save_checkpoint
@@ -239,6 +246,7 @@ def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoin
     assert code == 2 and "no fold_K.pt files" in err and err.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_mix_writes_a_mixture_with_a_companion_conditioned_like_the_model(capsys, tmp_path):
     import torch
 
@@ -292,6 +300,7 @@ def test_mix_writes_a_mixture_with_a_companion_conditioned_like_the_model(capsys
     assert code == 2 and "[0, 1]" in err and not (tmp_path / "y.pt").exists()
 
 
+@pytest.mark.slow
 def test_nested_recipe_search_chooses_candidate_and_calibration_on_inner_folds(capsys, tmp_path):
     from trafficweaving.model.checkpoint import load_checkpoint
 
@@ -324,6 +333,7 @@ def test_nested_recipe_search_chooses_candidate_and_calibration_on_inner_folds(c
     assert code == 2 and "2 --model for 1 --folds" in err
 
 
+@pytest.mark.slow
 def test_default_model_is_shipped_trained_and_evaluates(capsys, tmp_path):
     from trafficweaving.model.checkpoint import read_checkpoint
     from trafficweaving.model.registry import default_model_path
@@ -364,6 +374,7 @@ def test_simulated_real_model_is_shipped_without_the_authors_weights(capsys):
     assert all(0.85 <= c <= 0.95 for c in payload["calibration"]["coverage_90"].values())
 
 
+@pytest.mark.slow
 def test_bench_plan_reports_futures_and_seconds(capsys):
     from trafficweaving.model.predictor import native_bfloat16
 

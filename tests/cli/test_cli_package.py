@@ -16,12 +16,14 @@ from trafficweaving.sim.batch import simulate
 CLI = Path(trafficweaving.cli.__file__).parent
 
 
+@pytest.mark.slow
 def test_importing_the_cli_does_not_import_torch():
     code = "import sys, trafficweaving.cli; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
 
 
+@pytest.mark.slow
 def test_no_function_of_the_cli_is_over_80_lines():
     long = [(path.name, node.name, node.end_lineno - node.lineno + 1)
             for path in CLI.glob("*.py") for node in ast.walk(ast.parse(path.read_text()))
@@ -42,6 +44,7 @@ def run_folder(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_report_json_names_the_files_it_wrote(capsys, run_folder, tmp_path):
     assert main(["report", str(run_folder), "--out", str(tmp_path / "report"), "--json"]) == 0
     result = json.loads(capsys.readouterr().out)

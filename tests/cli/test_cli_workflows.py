@@ -33,6 +33,7 @@ def test_config_from_options_from_scratch_fine_tuning_and_overrides():
         config_from_options(10, 0, validation_fraction=0.0, patience=3)
 
 
+@pytest.mark.slow
 def test_evaluate_file_is_the_commands_payload_with_data_and_seed(data, tmp_path, capsys):
     from trafficweaving.model.metrics import evaluate_file
 

@@ -207,6 +207,7 @@ def server():
         conn.close()
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(find_spec("ray") is None, reason="Ray is not installed (extra `ray`)")
 def test_a_ray_address_is_checked_in_form_and_must_answer_promptly(tmp_path, capsys, server, monkeypatch):
     out = tmp_path / "run"

@@ -12,6 +12,7 @@ import pytest
 COMMAND = Path(sys.executable).parent / "trafficweaving"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not COMMAND.exists(), reason="the trafficweaving console script is not installed in this environment")
 @pytest.mark.parametrize("delay_s", [0.15, 0.3, 1.0])
 def test_ctrl_c_during_start_up_prints_one_line(delay_s, tmp_path):

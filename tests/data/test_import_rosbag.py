@@ -137,6 +137,7 @@ def imported(bag_dir):
     return read_rosbags(bag_dir)
 
 
+@pytest.mark.slow
 def test_every_bag_has_its_outcome(imported):
     assert imported.files == sorted((name, outcome) for name, (_, outcome) in BAGS.items())
     assert imported.rejected == {

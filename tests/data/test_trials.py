@@ -399,6 +399,7 @@ def test_summaries_never_hold_nan_or_infinity():
     assert math.isclose(compare_behaviour({"speed": np.array([3.0])}, {"speed": np.array([1.0, 2.0])})["speed"]["wasserstein_over_std"], 1.5 / 0.5)
 
 
+@pytest.mark.slow
 def test_table1_test_is_calibrated_on_tables_drawn_at_the_papers_rates():
     """Tables played at the study's true rates (each cell's rate drawn from what its published
     percentage and size leave possible, a Beta posterior) are judged consistent about 95 % of the

@@ -87,6 +87,7 @@ def workdir(tmp_path_factory):
     return tmp_path_factory.mktemp("properties")
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(trials=trial_sets())
 def test_round_trip_of_any_valid_trial_set_is_exact(workdir, trials):
@@ -211,6 +212,7 @@ def corrupt_bytes(data: bytes, kind: str, draw) -> bytes:
     return b""
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", TABLE_MUTATIONS + BYTE_MUTATIONS)
 @settings(SETTINGS, max_examples=8)
 @given(data=st.data())

@@ -35,6 +35,7 @@ def _lanes(observation) -> tuple[str, str]:
     return start, "right" if start == "left" else "left"
 
 
+@pytest.mark.slow
 def test_same_seed_same_episode():
     env = TrafficWeavingEnv()
     hold = lambda obs: Action.of(0.0, _lanes(obs)[0]).index  # noqa: E731
@@ -42,6 +43,7 @@ def test_same_seed_same_episode():
     assert (total_a, steps_a, info_a) == (total_b, steps_b, info_b) and np.array_equal(last_a, last_b)
 
 
+@pytest.mark.slow
 def test_keeping_the_lane_or_cutting_in_fails_and_waiting_for_a_gap_succeeds():
     env = TrafficWeavingEnv()
     _, _, info, observation = _run(env, lambda obs: Action.of(0.0, _lanes(obs)[0]).index, seed=1)

@@ -67,6 +67,7 @@ def set_tensor(name: str, value):
 
 
 # ---------------------------------------------------------------- format and digest
+@pytest.mark.slow
 def test_round_trip_keeps_every_tensor_and_field(model, saved):
     loaded, payload = load_checkpoint(saved)
     assert payload["version"] == VERSION == 6 and payload[HASH_FIELD] == tensor_digest(payload)
@@ -128,6 +129,7 @@ def test_edited_tensors_without_a_new_digest_are_refused(saved):
     fails(saved.with_name("int.pt"), "tensor data does not match the checkpoint's SHA-256")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [torch.int64, torch.float64, torch.float16])
 def test_weights_of_another_dtype_are_refused_even_with_a_valid_digest(saved, dtype):
     def cast(payload):
@@ -137,6 +139,7 @@ def test_weights_of_another_dtype_are_refused_even_with_a_valid_digest(saved, dt
     assert "feature_mean" in message  # the first tensor of the state dict is named
 
 
+@pytest.mark.slow
 def test_non_finite_weights_are_refused(saved):
     nan = edited(saved, "nan.pt", set_tensor("decoder.bias", lambda t: t.clone().index_fill_(0, torch.tensor([3]), float("nan"))))
     fails(nan, r"nan\.pt: tensor decoder\.bias has NaN or infinite values \(expected finite weights\)")
@@ -155,6 +158,7 @@ def test_non_positive_standard_deviations_and_calibration_are_refused(saved, nam
     fails(path, rf"bad\.pt: tensor {name} has a value -?[0-9.]+ <= 0 \(expected {expected}\)")
 
 
+@pytest.mark.slow
 def test_shapes_and_missing_or_extra_tensors_are_refused(saved):
     fails(edited(saved, "shape.pt", set_tensor("decoder.bias", torch.zeros(7))),
           r"tensor decoder\.bias has shape \[7\] \(expected \[512\]\)")
@@ -200,6 +204,7 @@ def test_malformed_fields_that_commands_read_are_refused(saved, field, value, ex
     fails(path, rf"field\.pt: checkpoint field {field} is .* \(expected {expected}")
 
 
+@pytest.mark.slow
 def test_malformed_resume_state_is_refused(saved):
     fails(edited(saved, "tc.pt", lambda p: p["train_config"].__setitem__("batch_size", "32")),
           r"train_config field batch_size is '32' \(expected an integer")
@@ -214,6 +219,7 @@ def test_malformed_resume_state_is_refused(saved):
           r"optimizer state covers \d+ parameters \(expected the model's \d+ trainable ones\)")
 
 
+@pytest.mark.slow
 def test_older_versions_load_with_their_density(model, saved):
     """Before version 4 the output scale was one number for both directions, and in version 2 it
     also widened the hold modes: such files load with the scale in both directions and (version 2)

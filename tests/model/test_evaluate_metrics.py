@@ -68,6 +68,7 @@ def _self_sampled(model, exemplars: ExemplarSet, picks: np.ndarray) -> ExemplarS
                        exemplars.sources[exemplars.stream[picks]], np.arange(n), exemplars.t[picks].copy())
 
 
+@pytest.mark.slow
 def test_coverage_on_data_sampled_from_the_model_itself_is_near_nominal(trials, model):
     exemplars = build_exemplars(trials)
     picks = np.arange(0, len(exemplars), 2)
@@ -85,6 +86,7 @@ def test_coverage_on_data_sampled_from_the_model_itself_is_near_nominal(trials, 
     assert real.covered.mean() < coverage[..., 1].mean() - 0.05
 
 
+@pytest.mark.slow
 def test_min_ade_and_fde_never_grow_with_more_samples_and_are_deterministic(trials, model):
     exemplars = build_exemplars(trials)
     index = np.arange(0, len(exemplars), 20)
@@ -108,6 +110,7 @@ def test_per_direction_nll_adds_up_to_the_exact_nll_for_one_uncorrelated_gaussia
     np.testing.assert_allclose(result.nll_direction.sum(axis=1), result.nll_exact, rtol=1e-5, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_phases_partition_the_instances_and_follow_the_lane_change(trials, model):
     exemplars = build_exemplars(trials)
     metrics = evaluate_instances(model, trials, exemplars, samples=10, ade_samples=5, max_sampled=50)
@@ -127,6 +130,7 @@ def test_phases_partition_the_instances_and_follow_the_lane_change(trials, model
     assert np.isnan(metrics.min_ade[~metrics.sampled]).all() and np.isfinite(metrics.min_ade[metrics.sampled]).all()
 
 
+@pytest.mark.slow
 def test_evaluate_json_per_instance_parquet_round_trip(capsys, tmp_path, trials):
     data, table = tmp_path / "d.parquet", tmp_path / "out" / "instances.parquet"
     trials.subset(np.arange(6)).write_parquet(data)
@@ -166,6 +170,7 @@ def test_evaluate_rejects_bad_options_in_one_line(capsys, tmp_path, trials, argv
     assert code == 2 and message in err and err.count("\n") == 1 and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_real_humans_report_script_writes_tables_figures_and_its_command(tmp_path, trials):
     import subprocess
     import sys

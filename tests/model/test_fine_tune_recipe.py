@@ -37,6 +37,7 @@ def cvae_checkpoint(trials, tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_hold_modes_start_switched_off_so_the_upgrade_keeps_the_density(trials, cvae_checkpoint):
     paper, _ = load_checkpoint(cvae_checkpoint)
     upgraded, provenance = initial_model(cvae_checkpoint, "cvae-hold")
@@ -50,6 +51,7 @@ def test_hold_modes_start_switched_off_so_the_upgrade_keeps_the_density(trials, 
     np.testing.assert_allclose(after.nll_direction, before.nll_direction, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_the_authors_model_upgraded_has_its_density_on_the_real_trials(authors_model_dir, hitl_trials):
     authors = f"authors:{authors_model_dir / 'weights.npz'}"
     paper, _ = initial_model(authors, None)
@@ -80,6 +82,7 @@ def test_exact_objective_is_the_exact_nll_and_needs_no_q(trials):
     assert loss.item() == pytest.approx(expected, abs=1e-4) and parts["kl"] == 0.0
 
 
+@pytest.mark.slow
 def test_a_model_without_q_fine_tunes_with_the_exact_objective_only(authors_model_dir, trials, tmp_path):
     authors = f"authors:{authors_model_dir / 'weights.npz'}"
     with pytest.raises(InputError, match="no recognition network"):
@@ -90,6 +93,7 @@ def test_a_model_without_q_fine_tunes_with_the_exact_objective_only(authors_mode
     assert result.model.config.name == "cvae-hold" and not result.model.config.has_q
 
 
+@pytest.mark.slow
 def test_trainable_parts_freeze_the_rest(trials, cvae_checkpoint, tmp_path):
     initial, _ = initial_model(cvae_checkpoint, "cvae-hold")
     tc = replace(QUICK, trainable="hold", hold_lr=0.05)
@@ -101,6 +105,7 @@ def test_trainable_parts_freeze_the_rest(trials, cvae_checkpoint, tmp_path):
     assert sum(len(g["params"]) for g in payload["optimizer"]["param_groups"]) == 3
 
 
+@pytest.mark.slow
 def test_hold_logits_learn_at_their_own_rate(cvae_checkpoint):
     model, _ = initial_model(cvae_checkpoint, "cvae-hold")
     groups = make_optimizer(model, replace(QUICK, hold_lr=0.05)).param_groups
@@ -122,6 +127,7 @@ def test_nested_steps_come_from_the_inner_cross_validation():
     assert summary["nested"]["steps"] == [50, 100, 0] and summary["nested"]["folds"] == [-1.0, -2.0, 0.0]
 
 
+@pytest.mark.slow
 def test_nested_crossval_trains_without_each_pair_of_folds_saves_the_inner_models_and_workers_agree(trials, cvae_checkpoint, tmp_path):
     six = trials.subset(np.arange(6))  # three folds of two trials
     out = tmp_path / "folds"

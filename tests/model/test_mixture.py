@@ -34,6 +34,7 @@ def exemplars():
     return build_exemplars(synthetic_trials(2, seed=4))
 
 
+@pytest.mark.slow
 def test_mixture_density_is_the_weighted_sum_of_the_components(components, exemplars):
     a, b = components
     ea, eb = evaluate(a, exemplars), evaluate(b, exemplars)
@@ -50,6 +51,7 @@ def test_mixture_density_is_the_weighted_sum_of_the_components(components, exemp
     np.testing.assert_allclose(same.nll_exact, ea.nll_exact, rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_samples_come_from_the_components_at_their_weights(components):
     a, b = components
     marked = copy.deepcopy(b)
@@ -92,6 +94,7 @@ def test_the_mixture_rollout_decodes_each_row_as_its_component_does(components):
         torch.testing.assert_close(ours[rows], reference[rows], rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_a_mixture_checkpoint_round_trips_and_a_malformed_one_is_refused(components, exemplars, tmp_path):
     a, b = components
     mixture = Mixture([copy.deepcopy(a).float(), copy.deepcopy(b).float()], [0.9, 0.1])

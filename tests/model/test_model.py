@@ -177,6 +177,7 @@ def _toy_hold(batch: int = 1, previous=(0.4, -0.3)):
                        gmm=GMM(*(v.expand(batch, *v.shape[1:]) for v in (gmm.log_pi, gmm.mu, gmm.log_sigma, gmm.corr))))
 
 
+@pytest.mark.slow
 def test_hold_mixture_marginals_integrate_to_one_and_agree_with_the_joint():
     hold = _toy_hold()
     grid = torch.linspace(-12, 12, 240_001, dtype=torch.float64)
@@ -222,6 +223,7 @@ def test_reference_instances_are_ours(authors):
     np.testing.assert_array_equal(exemplars.t, reference["t"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("device", DEVICES)
 def test_authors_latent_prior_and_likelihoods_match_tensorflow(authors, device):
     model, exemplars, _, reference = authors
@@ -245,6 +247,7 @@ def test_authors_gmm_parameters_match_tensorflow(authors):
         np.testing.assert_allclose(value.transpose(0, 1).numpy(), reference[name], atol=1e-4, rtol=0, err_msg=name)
 
 
+@pytest.mark.slow
 def test_authors_exact_nll_is_the_papers(authors):
     model, exemplars, _, reference = authors
     result = evaluate(model, exemplars)
@@ -255,6 +258,7 @@ def test_authors_exact_nll_is_the_papers(authors):
     assert result.summary()["nll_naive"] >= result.summary()["nll_exact"] - 0.05
 
 
+@pytest.mark.slow
 def test_authors_model_in_float32_agrees_too(authors_model_dir, hitl_trials):
     from trafficweaving.model.authors import load_authors_model
 
@@ -317,6 +321,7 @@ def test_sampling_shapes_and_determinism(small_trials, device):
     assert a.latents.min() >= 0 and a.latents.max() < 25 and torch.isfinite(a.actions).all()
 
 
+@pytest.mark.slow
 def test_sampled_latents_follow_the_prior(authors_model_dir, hitl_files):
     from trafficweaving.model.authors import load_authors_model
 

@@ -106,6 +106,7 @@ def test_calibrate_checkpoint_checks_its_inputs_before_reading_the_data(tmp_path
     assert not (tmp_path / "c.pt").exists()
 
 
+@pytest.mark.slow
 def test_the_file_format_does_not_import_the_trainer_and_the_grammar_not_torch():
     code = ("import sys, trafficweaving.model.spec; assert 'torch' not in sys.modules; "
             "import trafficweaving.model.checkpoint; "

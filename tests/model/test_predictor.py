@@ -13,6 +13,7 @@ from trafficweaving.planning.candidates import robot_candidates
 from trafficweaving.planning.planner import example_history
 
 
+@pytest.mark.slow
 def test_int8_precision_compiles_and_samples_what_float32_samples_to_quantisation_error():
     """precision int8 (compiled) against the same steps run eagerly (the same numbers to float
     rounding, but for rare draws on a component boundary) and against float32 with the same random
@@ -56,6 +57,7 @@ def test_the_predictors_one_shot_prediction_is_its_planning_protocol():
     assert predictor.precision == "float32"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", ["cvae", "cvae-hold"])
 def test_common_random_numbers_give_every_candidate_each_samples_draws(variant):
     """Sample i of every candidate is drawn with the same random numbers: identical robot futures get

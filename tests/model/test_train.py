@@ -48,6 +48,7 @@ def test_kl_term_has_the_0_07_floor_per_latent_variable(trials):
     assert loss.item() == pytest.approx(parts["nll"] + 0.07 * kl_weight(tc, 50_000), rel=1e-5)
 
 
+@pytest.mark.slow
 def test_training_reduces_the_loss_and_writes_a_checkpoint(trials, tmp_path):
     out = tmp_path / "m.pt"
     result = train(trials, out, tc=TrainConfig(steps=60, validate_every=30, checkpoint_every=30, validation_exemplars=128),
@@ -60,6 +61,7 @@ def test_training_reduces_the_loss_and_writes_a_checkpoint(trials, tmp_path):
     assert result.validation["instances"] > 0 and np.isfinite(result.validation["nll_exact"])
 
 
+@pytest.mark.slow
 def test_resumed_training_equals_uninterrupted_training(trials, tmp_path):
     straight = train(trials, tmp_path / "a.pt", tc=QUICK, progress=False, log=lambda _: None)
     train(trials, tmp_path / "b.pt", tc=TrainConfig(**{**vars(QUICK), "steps": 3}), progress=False, log=lambda _: None)
@@ -69,6 +71,7 @@ def test_resumed_training_equals_uninterrupted_training(trials, tmp_path):
         torch.testing.assert_close(a, b, rtol=0, atol=0, msg=name)
 
 
+@pytest.mark.slow
 def test_resume_refuses_other_data(trials, tmp_path):
     train(trials, tmp_path / "m.pt", tc=QUICK, progress=False, log=lambda _: None)
     other = synthetic_trials(20, seed=6)
@@ -76,6 +79,7 @@ def test_resume_refuses_other_data(trials, tmp_path):
         train(other, tmp_path / "n.pt", tc=QUICK, resume=tmp_path / "m.pt", progress=False, log=lambda _: None)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", ["cvae", "lstm"])
 def test_checkpoint_round_trip_keeps_predictions(trials, tmp_path, variant):
     torch.manual_seed(1)
@@ -130,6 +134,7 @@ def pretrained(trials, tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_fine_tuning_keeps_the_models_standardisation_and_records_its_origin(pretrained, tmp_path):
     from dataclasses import replace
 
@@ -148,6 +153,7 @@ def test_fine_tuning_keeps_the_models_standardisation_and_records_its_origin(pre
     assert result.step == 6
 
 
+@pytest.mark.slow
 def test_fine_tuning_refuses_another_variant_or_data_in_other_units(pretrained, trials, tmp_path):
     with pytest.raises(InputError, match="a cvae-hold model, but --variant cvae"):
         train(trials, tmp_path / "a.pt", "cvae", QUICK, init=pretrained, progress=False, log=lambda _: None)
@@ -159,6 +165,7 @@ def test_fine_tuning_refuses_another_variant_or_data_in_other_units(pretrained, 
         train(trials, tmp_path / "c.pt", None, QUICK, init=tmp_path / "missing.pt", progress=False, log=lambda _: None)
 
 
+@pytest.mark.slow
 def test_early_stopping_keeps_the_best_weights(pretrained, trials, tmp_path):
     from dataclasses import replace
 
@@ -219,6 +226,7 @@ def test_crossval_can_require_every_fold_to_beat_the_reference():
     assert summary["nested"]["steps"] == [50, 50, 100]
 
 
+@pytest.mark.slow
 def test_crossval_fine_tunes_each_fold_and_scores_the_reference(pretrained, trials, tmp_path):
     from dataclasses import replace
 
@@ -249,6 +257,7 @@ def test_crossval_rejects_too_few_trials_or_no_humans(trials):
         crossval(robots, 3, QUICK, progress=False, log=lambda _: None)
 
 
+@pytest.mark.slow
 def test_hold_widths_learn_at_their_own_rate(pretrained, trials, tmp_path):
     from dataclasses import replace
 

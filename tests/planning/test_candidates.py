@@ -61,6 +61,7 @@ def test_action_sequences_order():
     assert seqs.shape == (4096, 5) and (seqs[:8, -1] == np.arange(8)).all() and (seqs[-1] == [3, 7, 7, 7, 7]).all()
 
 
+@pytest.mark.slow
 def test_settled_steering_comes_to_rest_on_the_lane_centre_where_the_papers_keeps_chattering():
     """Executed as the world executes a plan (one acceleration a step, trapezoid rule), the paper's
     steering re-solves the sampling's residue on the lane centre every window into ±0.7 m/s²; with
@@ -84,6 +85,7 @@ def test_settled_steering_comes_to_rest_on_the_lane_centre_where_the_papers_keep
     assert float(optimal_time(np.array([LEFT + 0.01, 0.0, 0.0]), np.array(LEFT), min_time=SETTLING_TIME)) >= SETTLING_TIME
 
 
+@pytest.mark.slow
 def test_comfort_candidates_keep_to_the_comfort_limits_from_every_state_they_reach():
     """From the right lane towards the left one, lane changes turned back included; the paper's
     candidates break the limits in most sequences."""

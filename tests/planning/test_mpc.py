@@ -4,6 +4,7 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+import pytest
 
 from trafficweaving.model.constant_velocity import ConstantVelocityHuman
 from trafficweaving.model.cvae import CVAE
@@ -18,6 +19,7 @@ from trafficweaving.sim.world import World
 from helpers_planning import LEFT, RIGHT, _history
 
 
+@pytest.mark.slow
 def test_mpc_plans_in_the_fallback_from_the_first_plan_that_needs_it_to_the_end_of_the_episode():
     """A robot 3 s before the cutoff beside a slower human (4 m ahead, 5 m/s slower) it cannot set
     out beside yet, the fallback within 2.5 s: the first plans are comfortable, then every plan
@@ -63,6 +65,7 @@ def test_mpc_keeps_to_the_safety_fallback_until_time_asks_for_the_fallback():
     assert policy.fallen_back is None and policy.plan_style(braking, go) is first.safety_fallback
 
 
+@pytest.mark.slow
 def test_mpc_holds_then_replans_every_window_with_the_fixed_first_window():
     torch.manual_seed(0)
     policy = MPCPolicy(Planner(HumanPredictor(CVAE())), budget=Budget(1, 2, 2))
@@ -83,6 +86,7 @@ def test_mpc_holds_then_replans_every_window_with_the_fixed_first_window():
     np.testing.assert_allclose(robot[12:14, 4], executed[:2, 4])
 
 
+@pytest.mark.slow
 def test_a_comfort_planner_drives_the_closed_loop_within_the_limits():
     from trafficweaving.sim.score import comfort_violations
 

@@ -17,6 +17,7 @@ from trafficweaving.planning.styles import DrivingStyle
 from helpers_planning import HISTORY_TOY, LEFT, ToyHuman, _accelerates_throughout, _history, toy_cost
 
 
+@pytest.mark.slow
 def test_two_stage_selection_finds_the_known_optimum():
     for seed in range(3):
         plan = Planner(ToyHuman(), seed=seed).plan(HISTORY_TOY, Action.of(0.0, "right").index, cost=toy_cost)
@@ -25,6 +26,7 @@ def test_two_stage_selection_finds_the_known_optimum():
         assert set(np.argsort(plan.first_stage_cost)[:32]) == set(plan.finalists)
 
 
+@pytest.mark.slow
 def test_second_stage_corrects_a_noisy_first_stage():
     corrected = 0
     for seed in range(6):
@@ -40,6 +42,7 @@ def test_budget_counts_are_configurable():
     assert plan.futures == 4096 * 2 + 5 * 7 and len(plan.finalists) == 5 and plan.second_stage_samples == 7
 
 
+@pytest.mark.slow
 def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():
     scores = torch.tensor([[1.0, 10.0], [2.0, 20.0], [3.0, 30.0], [4.0, 40.0]])
     assert risk_cost(scores, 1.0).tolist() == [2.5, 25.0] and risk_cost(scores, 0.5).tolist() == [3.5, 35.0]
@@ -57,6 +60,7 @@ def test_risk_judges_a_candidate_by_the_mean_of_its_worst_sampled_futures():
         Planner(ToyHuman(), style="paper")
 
 
+@pytest.mark.slow
 def test_a_real_time_plan_returns_within_the_deadline():
     torch.manual_seed(0)
     planner = Planner(HumanPredictor(CVAE()))
@@ -91,6 +95,7 @@ def test_real_time_screening_conditions_on_each_window_1_action_held_then_on_the
     assert np.isfinite(plan.first_stage_cost).all()  # every candidate screened, however short the deadline
 
 
+@pytest.mark.slow
 def test_real_time_stage_1_samples_every_candidates_own_futures_where_two_each_fit_in_time():
     human = _RecordingHuman()
     planner, history, fixed = Planner(human), _history(), Action.of(0.0, "right").index
@@ -120,6 +125,7 @@ class _NoisyHuman(_RecordingHuman):
         return accelerations
 
 
+@pytest.mark.slow
 def test_real_time_finalists_are_the_best_of_the_shortlist_by_all_their_samples():
     human, history, fixed, cost = _NoisyHuman(), _history(), Action.of(0.0, "right").index, PaperCost(goal_y=LEFT)
     planner = Planner(human)
@@ -141,6 +147,7 @@ def test_real_time_finalists_are_the_best_of_the_shortlist_by_all_their_samples(
     assert late.first_stage_samples >= 2 and late.shortlist_samples == 0 and late.second_stage_samples >= 1
 
 
+@pytest.mark.slow
 def test_screening_is_exact_for_a_human_that_ignores_the_robot():
     # the constant-velocity human's future does not depend on the robot's: the shared futures are
     # every candidate's own, so the screened stage 1 costs what the paper's stage 1 costs

@@ -99,6 +99,7 @@ def test_score_refuses_bad_sample_counts(planner, samples):
     rejects("samples", planner.score, HISTORY, 0, COST, [0], samples)
 
 
+@pytest.mark.slow
 def test_good_edge_cases_plan(planner):
     plan = planner.plan(HISTORY[-5:].tolist(), np.int64(N_ACTIONS - 1), COST, keep_samples=0, deadline=None)
     assert plan.actions[0] == N_ACTIONS - 1 and plan.human.shape == (0, 15, 6)

@@ -34,6 +34,7 @@ class GoalToyCost:
         return toy_cost(robot, human)
 
 
+@pytest.mark.slow
 def test_turning_back_from_a_lane_change_under_way_costs_and_setting_out_does_not():
     """HISTORY_TOY's robot is in the right lane; window 0 sets out for the goal, the left lane."""
     fixed, cost = Action.of(0.0, "left").index, GoalToyCost(LEFT)
@@ -55,6 +56,7 @@ def test_turning_back_from_a_lane_change_under_way_costs_and_setting_out_does_no
     assert turn_backs(sequences, "left").tolist() == [0, 2, 0, 1]
 
 
+@pytest.mark.slow
 def test_setting_out_beside_the_human_costs_and_with_room_in_its_lane_or_under_way_does_not():
     """HISTORY_TOY's cars are side by side, the robot in the right lane; the goal is the left lane."""
     keep, cost, style = Action.of(0.0, "right").index, GoalToyCost(LEFT), DrivingStyle(set_out_gap=5.0)
@@ -145,6 +147,7 @@ def _shortfall_by_simulation(robot, states, human, human_braking, kinematics, dt
     return max(-min(gaps, default=np.inf), 0.0)
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(gap=st.floats(-2.0, 30.0), robot_speed=st.floats(0.0, 35.0), human_speed=st.floats(0.0, 35.0),
        human_acceleration=st.floats(-9.0, 2.0), offset=st.floats(-5.0, 5.0), first=st.integers(0, 7),
@@ -162,6 +165,7 @@ def test_the_stopping_shortfall_is_the_least_gap_of_both_cars_braking(gap, robot
     np.testing.assert_allclose(short, expected, atol=0.03)
 
 
+@pytest.mark.slow
 def test_the_following_rule_keeps_a_gap_the_robot_can_stop_in():
     """A human 20 m ahead in the robot's lane, both at 20 m/s: holding the speed leaves room to stop
     behind it braking at 6 m/s² (0.6 s and a car length: 16.5 m), not once it brakes at 8 m/s²;
@@ -197,6 +201,7 @@ def test_the_following_rule_keeps_a_gap_the_robot_can_stop_in():
         DrivingStyle(follow_braking=-1.0)
 
 
+@pytest.mark.slow
 def test_in_its_goal_lane_the_robot_gets_going_again_where_nothing_holds_it():
     """Stopped in its goal lane 8 m short of the cutoff, a slow human 7 m ahead beside it: the paper's
     cost pays the robot for staying behind (separation reward) and ``planner``'s styles still
@@ -243,6 +248,7 @@ def _seconds_to_clear(robot, human, acceleration, gap, ahead, floor=-np.inf):
     return t[np.argmax(clear)] if clear.any() else np.inf
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(st.floats(-12.0, 12.0), st.floats(-4.0, 4.0), st.floats(-8.0, 4.0), st.floats(14.0, 32.0),
        st.sampled_from(["settled", "comfort"]), st.sampled_from(["holding", "accelerating", "braking"]))
@@ -315,6 +321,7 @@ def test_the_way_out_goes_ahead_once_the_human_has_braked_along():
     assert not brakes_along(_side_by_side([0.0] * 3 + [-4.0] * 3, [0.0] * 3 + [-4.0] * 3))  # too short a history
 
 
+@pytest.mark.slow
 def test_the_standoff_exit_makes_room_beside_the_human():
     """2 m behind the human at the same speed, the robot yields (hardest braking); 4 m ahead, or
     beside a human braking at 8 m/s², it goes ahead. The planner costs every other window-1
@@ -358,6 +365,7 @@ def test_the_set_out_rule_watches_the_gap_while_each_styles_lane_change_crosses_
             assert style.set_out_times[0] <= first - 0.45 and style.set_out_times[-1] >= last + 0.45, name
 
 
+@pytest.mark.slow
 def test_a_style_falls_back_when_time_runs_short_or_the_human_ahead_brakes_harder_than_it_can():
     """The fallback plans from the first window the robot, settled in its start lane, would reach the
     cutoff within ``fallback_within`` s, or ``standoff_within`` s while the set-out rule holds it

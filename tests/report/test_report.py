@@ -88,6 +88,7 @@ def _close(cell: str, values: list, digits: int, scale: float = 1.0) -> bool:
         abs(a - b) <= 0.5 * 10 ** -digits + 1e-9 for a, b in zip(_numbers(cell), expected))
 
 
+@pytest.mark.slow
 def test_the_report_lists_every_run_and_writes_a_table_and_a_figure_per_kind(runs, report):
     result, out = report
     assert [(r["path"], r["kind"]) for r in result["runs"]] == [
@@ -166,6 +167,7 @@ def test_model_and_realism_rows_carry_the_files_numbers(runs, report):
         assert int(row["rollouts"]) == result["rollouts"] == 2
 
 
+@pytest.mark.slow
 def test_a_rerun_writes_the_same_bytes(runs, report, tmp_path):
     result, out = report
     before = {name: (out / name).read_bytes() for name in os.listdir(out)}
@@ -223,3 +225,11 @@ def test_an_output_folder_that_cannot_be_written_is_refused(runs, tmp_path):
         locked.chmod(0o700)
     elif Path("/proc/self").is_dir():  # root writes into any folder, but nothing can be created in /proc
         _refused(run, "/proc/trafficweaving-report", "--out /proc/trafficweaving-report", "cannot be written")
+
+
+def test_tick_labels_cut_paths_in_agent_specs_to_file_names():
+    from trafficweaving.viz.result_figures import short_spec
+
+    assert short_spec("model:authors:/a/b/weights.npz") == "model:authors:weights.npz"
+    assert short_spec("replay:runs/hitl.parquet#3") == "replay:hitl.parquet#3"
+    assert short_spec("model:driver") == "model:driver"

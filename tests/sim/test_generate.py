@@ -34,6 +34,7 @@ def test_protocol_rounds_of_18_and_pairs():
     assert np.bincount(pair).tolist() == [36] * 19
 
 
+@pytest.mark.slow
 def test_exactly_n_valid_trials_with_a_report(big):
     trials, report = big
     assert len(trials) == 3000 and report.kept == 3000
@@ -121,6 +122,7 @@ def test_drivers_change_lane_slowly_and_press_around_it(big):
     assert len(s["lane_change_sideways_time"]) == len(s["lane_change_x"]) >= 2 * len(big[0]) * 0.88
 
 
+@pytest.mark.slow
 def test_marginals_are_close_to_the_real_human_drivers(big, hitl_trials):
     comparison = compare_behaviour(behaviour_samples(big[0]), behaviour_samples(hitl_trials))
     for name in ("speed", "long_accel", "lat_accel", "long_jerk", "lat_jerk", "lane_change_x", "long_hold",

@@ -112,6 +112,7 @@ def test_realism_command(tmp_path, capsys):
     assert "no fold_K.pt files" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_self_play_generates_the_study_with_a_learned_driver_in_both_cars(tmp_path, capsys):
     out = tmp_path / "self_play.parquet"
     assert main(["generate", "--trials", "4", "--drivers", "model:driver", "--seed", "1", "--out", str(out), "--json"]) == 0

@@ -53,6 +53,7 @@ def one_line_error(capsys, argv) -> str:
 
 
 # ------------------------------------------------------------------ the environment
+@pytest.mark.slow
 def test_a_replayed_human_in_the_env_drives_its_recorded_path_and_never_leaves_the_road(hitl_file):
     trials = load_trials(hitl_file)
     for k, trial in enumerate(trials.trial_ids):

@@ -83,6 +83,7 @@ def spec(request, replay_file):
     return f"replay:{replay_file}" if request.param == "replay" else request.param
 
 
+@pytest.mark.slow
 def test_closed_loop_contract_and_determinism(spec):
     start = study_starts(0, 7)
     agent = human_agent(spec)
@@ -296,6 +297,7 @@ def test_a_car_braking_to_a_stop_in_the_world_does_not_roll_backwards():
     np.testing.assert_allclose(world.states[0, 1, :, 2], 29.0)  # the other car untouched
 
 
+@pytest.mark.slow
 def test_a_driver_model_judges_its_proposals_by_the_other_cars_predicted_futures():
     driver = load_model("driver")
     agent = ModelDriver(driver)

@@ -77,6 +77,7 @@ def swapped_and_clear(world, me):
 
 
 # ---------------------------------------------------------------- the agent contract
+@pytest.mark.slow
 @pytest.mark.parametrize("make", [RuleBasedRobot, untrained_mpc, lambda: robot_agent("planner-cv", budget=TINY)],
                          ids=["rules", "planner", "planner-cv"])
 def test_robots_keep_the_agent_contract_and_are_deterministic_given_the_seed(make):
@@ -91,6 +92,7 @@ def test_robots_keep_the_agent_contract_and_are_deterministic_given_the_seed(mak
         assert len(robot.latencies) == len(robot.plans) == 3 and min(robot.latencies) > 0  # at t = 8, 11, 14
 
 
+@pytest.mark.slow
 def test_the_mpc_holds_then_plans_every_window_from_the_true_state():
     robot, human = robot_agent("planner-cv", budget=TINY), ScriptedHuman()  # decisive: settled kinematics
     world, made = World(STARTS[[7]]), []  # the robot (car 1) starts in the left lane
@@ -121,6 +123,7 @@ def test_the_rule_based_robot_swaps_lanes_in_every_study_start(me):
     assert world.states[np.arange(len(STARTS)), me, swap, 0].max() < -20.0 and min_dx.min() > 10.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec, start, me", [("planner-decisive", 6, 0), ("planner-decisive", 12, 1),
                                              ("planner-cv", 0, 1), ("planner", 0, 1), ("planner", 6, 0)])
 def test_planner_robots_swap_lanes_without_collision_and_set_out_only_with_room(spec, start, me):

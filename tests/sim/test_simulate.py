@@ -327,6 +327,7 @@ def inline_run(tmp_path_factory):
     return out, simulate(4, "rules", "synthetic", seed=7, workers=1, out=out)
 
 
+@pytest.mark.slow
 def test_batch_writes_episodes_and_summary(inline_run):
     out, summary = inline_run
     assert sorted(p.name for p in (out / "episodes").iterdir()) == [f"episode_{i:06d}.parquet" for i in range(4)]
@@ -338,6 +339,7 @@ def test_batch_writes_episodes_and_summary(inline_run):
         assert record["metrics"] == episode_metrics(trials.states[0], int(trials.lengths[0]), record["robot_car"])
 
 
+@pytest.mark.slow
 def test_workers_and_pool_give_the_same_episodes(inline_run, tmp_path):
     out, _ = inline_run
     simulate(4, "rules", "synthetic", seed=7, workers=2, out=tmp_path)
@@ -345,6 +347,7 @@ def test_workers_and_pool_give_the_same_episodes(inline_run, tmp_path):
     assert [r["metrics"] for r in records(out, 4)] == [r["metrics"] for r in records(tmp_path, 4)]
 
 
+@pytest.mark.slow
 def test_ray_gives_the_same_episodes(inline_run, tmp_path):
     ray = pytest.importorskip("ray")
     out, _ = inline_run
@@ -406,6 +409,7 @@ def test_a_resumed_episode_is_measured_again_by_this_release(inline_run, tmp_pat
     assert {i: os.stat(episode_path(tmp_path, i)).st_mtime_ns for i in (0, 2, 3)} == kept
 
 
+@pytest.mark.slow
 def test_planner_episode_with_a_tiny_budget(tmp_path):
     """The paper's planner (CVAE human model) in the loop: plans are timed and counted."""
     summary = simulate(1, "planner", "synthetic", seed=0, out=tmp_path, budget=Budget(1, 1, 2))
@@ -414,6 +418,7 @@ def test_planner_episode_with_a_tiny_budget(tmp_path):
     assert record["spec"]["budget"] == [1, 1, 2] and summary["deadline_misses"] == record["latency"]["deadline_misses"]
 
 
+@pytest.mark.slow
 def test_the_planner_samples_at_the_precision_asked_for(tmp_path):
     """precision reaches the planner's human model and is logged; an unknown one is refused before
     any episode runs. (An episode at int8 or bfloat16 runs the compiled decoder steps: minutes on a
@@ -452,6 +457,7 @@ def broken_replay(inline_run, tmp_path) -> str:
     return str(path)
 
 
+@pytest.mark.slow
 def test_failing_episode_stops_the_pool(broken_replay, tmp_path):
     out = tmp_path / "run"
     with pytest.raises(EpisodeFailed, match=r"^episode 1 failed: InputError: history has NaN") as failure:
@@ -477,6 +483,7 @@ def test_cli_json(tmp_path, capsys):
     assert "2 episodes" in text and "2 reused" in text and "success" in text
 
 
+@pytest.mark.slow
 def test_cli_defaults_to_the_real_time_planner_in_a_simulation_folder(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert main(["simulate", "--episodes", "1", "--human", "synthetic", "--json"]) == 0

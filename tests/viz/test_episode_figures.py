@@ -24,6 +24,7 @@ def episode_log(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_fig6_and_animation_of_any_trial(tmp_path):
     trials, _ = generate_trials(2, seed=1)
     assert plot_episode(trials, 1, tmp_path / "fig6.png").read_bytes()[:8] == PNG
@@ -35,6 +36,7 @@ def test_fig6_and_animation_of_any_trial(tmp_path):
         plot_episode(trials, 2, tmp_path / "x.png")
 
 
+@pytest.mark.slow
 def test_rerunning_an_episode_recovers_its_plans_and_refuses_an_edited_log(episode_log, tmp_path):
     from trafficweaving.data.trials import load_trials
 
@@ -51,6 +53,7 @@ def test_rerunning_an_episode_recovers_its_plans_and_refuses_an_edited_log(episo
     assert rerun_with_plans(trials) is None
 
 
+@pytest.mark.slow
 def test_plot_episode_command(episode_log, tmp_path, capsys):
     code = main(["plot-episode", str(episode_log), "--out", str(tmp_path / "f.png"), "--gif", str(tmp_path / "a.gif"),
                  "--json"])

@@ -63,10 +63,12 @@ def test_plot_trajectories(trials, tmp_path):
     assert_png(out, tmp_path / "sub")
 
 
+@pytest.mark.slow
 def test_plot_profiles(trials, tmp_path):
     assert_png(plot_profiles(trials, tmp_path / "profiles.png"), tmp_path)
 
 
+@pytest.mark.slow
 def test_plot_table1_with_empty_cells(trials, tmp_path):
     result = table1(trials)
     assert result["table1"]["0"]["all"] is not None
@@ -75,6 +77,7 @@ def test_plot_table1_with_empty_cells(trials, tmp_path):
     assert_png(plot_table1(empty, tmp_path / "t1_empty.png"), tmp_path)
 
 
+@pytest.mark.slow
 def test_plot_behaviour_overwrites_atomically(trials, tmp_path):
     sim, real = behaviour_samples(trials, "robot"), behaviour_samples(trials, "human")
     real["lane_change_duration"] = np.array([])  # a statistic with no real sample still gets a panel
@@ -89,6 +92,7 @@ def test_empty_trial_set_is_refused(trials, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_planner_figures(tmp_path):
     import torch
 

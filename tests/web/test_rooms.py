@@ -56,6 +56,7 @@ def test_the_protocol_plays_rounds_of_the_18_starts_and_swaps_the_cars_every_rou
 
 
 # ---------------------------------------------------------------- two pages, one room
+@pytest.mark.slow
 def test_two_pages_drive_a_protocol_trial_in_one_room(tmp_path):
     with drive_server(tmp_path, mode="human-human") as url, client(url) as a:
         assert a.welcome["mode"] == "human-human" and a.welcome["seat"] == 0
@@ -130,6 +131,7 @@ def test_a_room_needs_its_token_and_the_page_its_origin(tmp_path):
                 assert closed.value.rcvd.code == BUSY_CLOSE_CODE
 
 
+@pytest.mark.slow
 def test_off_loopback_every_request_needs_the_key_or_a_rooms_token(tmp_path):
     with drive_server(tmp_path, mode="human-human", host="0.0.0.0") as url:
         assert "?key=" in url
@@ -154,6 +156,7 @@ def test_off_loopback_every_request_needs_the_key_or_a_rooms_token(tmp_path):
 
 
 # ---------------------------------------------------------------- floods and a driver gone
+@pytest.mark.slow
 def test_a_flood_and_a_lost_driver_end_only_their_own_trial_and_stats_shows_the_pairs(tmp_path, capsys):
     with drive_server(tmp_path, mode="human-human", max_rooms=2) as url, ExitStack() as pages:
         a1 = pages.enter_context(client(url))

@@ -48,6 +48,7 @@ def wait_for(page, expression: str, timeout: float = 20.0):
     raise AssertionError(f"timed out waiting for {expression}")
 
 
+@pytest.mark.slow
 def test_drive_a_trial_in_the_browser(browser, tmp_path):
     with drive_server(tmp_path / "drives", countdown=1) as url:
         page = browser.new_page(viewport={"width": 1280, "height": 740})
@@ -150,6 +151,7 @@ def steer_key(y: float, start_y: float) -> str | None:
     return "ArrowLeft" if target > y else "ArrowRight"
 
 
+@pytest.mark.slow
 def test_two_browsers_drive_a_trial_in_one_room_and_it_trains(browser, tmp_path, capsys):
     out = tmp_path / "drives"
     with drive_server(out, mode="human-human") as url:

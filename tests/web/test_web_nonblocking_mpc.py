@@ -60,6 +60,7 @@ def executed_window(world, t, action):
     return rollout(world.history[0, 0, t], np.array([[action]]))[0]
 
 
+@pytest.mark.slow
 def test_in_time_plans_are_executed_window_by_window():
     policy = NonBlockingMPCPolicy(SlowPlanner([]))
     boundaries = range(HOLD_STEPS, 30, 3)
@@ -80,6 +81,7 @@ def test_in_time_plans_are_executed_window_by_window():
     policy.close()
 
 
+@pytest.mark.slow
 def test_the_comfort_first_robot_executes_each_window_as_the_mode_that_planned_it():
     """9 m ahead of a human 4 m/s faster in the other lane, 4.1 s before the cutoff: the comfort
     mode's longer look holds the robot in its lane even accelerating as hard as that mode can, and
@@ -103,6 +105,7 @@ def test_the_comfort_first_robot_executes_each_window_as_the_mode_that_planned_i
     policy.close()
 
 
+@pytest.mark.slow
 def test_a_slow_planner_never_stalls_the_simulation_and_the_robot_keeps_its_current_plan():
     # plans at t = 8 and 11 are in time; the plan at t = 14 takes 1 s: windows 17, 20, 23 follow
     # the plan made at 11 (its windows 2, 3, 4), window 26 holds its speed in that plan's last lane
@@ -135,6 +138,7 @@ def test_a_slow_planner_never_stalls_the_simulation_and_the_robot_keeps_its_curr
     policy.close()
 
 
+@pytest.mark.slow
 def test_the_late_plan_is_discarded_and_the_next_one_made_at_the_following_window():
     policy = NonBlockingMPCPolicy(SlowPlanner([0.0, 0.3]))
     world = World(START)
@@ -152,6 +156,7 @@ def test_the_late_plan_is_discarded_and_the_next_one_made_at_the_following_windo
     policy.close()
 
 
+@pytest.mark.slow
 def test_reset_waits_for_a_running_plan_and_starts_afresh():
     policy = NonBlockingMPCPolicy(SlowPlanner([0.2]))
     world, _ = drive(policy, HOLD_STEPS + 1)
@@ -168,6 +173,7 @@ def test_act_needs_an_episode():
     policy.close()
 
 
+@pytest.mark.slow
 def test_a_real_time_loop_gets_every_plan_in_time():
     # 10 Hz pacing as the drive server runs it, with a planner that needs over 0.1 s a plan
     policy = NonBlockingMPCPolicy(SlowPlanner([0.1] * 20))
@@ -182,6 +188,7 @@ def test_a_real_time_loop_gets_every_plan_in_time():
     policy.close()
 
 
+@pytest.mark.slow
 def test_the_planner_thread_uses_the_torch_threads_it_is_given():
     seen = []
 

@@ -83,6 +83,7 @@ def server(tmp_path_factory):
         yield url, out
 
 
+@pytest.mark.slow
 def test_the_page_and_its_files_are_served(server):
     import urllib.request
 
@@ -95,6 +96,7 @@ def test_the_page_and_its_files_are_served(server):
     assert "new WebSocket" in script
 
 
+@pytest.mark.slow
 def test_refused_messages_get_one_error_each_and_the_trial_goes_on(server):
     url, out = server
     with client(url) as ws:
@@ -161,6 +163,7 @@ def test_refused_messages_get_one_error_each_and_the_trial_goes_on(server):
             assert current["actions"][0] == previous["actions"][1]
 
 
+@pytest.mark.slow
 def test_a_closed_connection_ends_the_trial_and_keeps_what_was_recorded(server):
     url, out = server
     with client(url) as ws:
@@ -196,6 +199,7 @@ def test_a_closed_connection_ends_the_trial_and_keeps_what_was_recorded(server):
     assert list(trials.roles[0]) == ["human", "robot"]
 
 
+@pytest.mark.slow
 def test_a_second_page_waits_for_the_planner_in_a_queue(server):
     url, _ = server
     with client(url) as first, client(url) as second, client(url) as third:
@@ -234,6 +238,7 @@ def _cli(*args):
     return json.loads(result.stdout) if "--json" in args else result.stdout
 
 
+@pytest.mark.slow
 def test_recorded_trials_load_with_stats_evaluate_and_simulate(server, tmp_path):
     url, out = server
     files = sorted(out.glob("drive_*.parquet"))

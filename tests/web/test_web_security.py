@@ -120,6 +120,7 @@ def server_with_key(tmp_path, mode, host, **options):
         yield port_of(url), ("?" + url.split("?", 1)[1]) if "?" in url else ""
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["human-human", "robot"])
 @pytest.mark.parametrize("host", ["127.0.0.1", "0.0.0.0"])
 def test_dns_rebinding_is_refused_in_both_modes_on_loopback_and_off(tmp_path, mode, host):
@@ -184,6 +185,7 @@ def test_off_loopback_the_page_files_need_the_pass_the_keyed_page_sets(tmp_path)
             assert status == 200 and headers["set-cookie"].split(";")[0] == page_pass
 
 
+@pytest.mark.slow
 def test_a_keyed_page_and_a_join_link_load_their_scripts_in_a_real_browser(browser, tmp_path):
     with server_with_key(tmp_path, "human-human", "0.0.0.0") as (port, key):
         base = f"http://127.0.0.1:{port}"
@@ -221,6 +223,7 @@ def idle(port: int, source: str = "127.0.0.1", partial: bool = False) -> socket.
     return sock
 
 
+@pytest.mark.slow
 def test_connections_that_do_not_send_a_request_in_time_are_closed_but_pages_stay(tmp_path):
     limits = ConnectionLimits(total=64, per_address=32, header_timeout_s=1.0)
     with drive_server(tmp_path, mode="human-human", limits=limits) as url, client(url) as page:
@@ -242,6 +245,7 @@ def test_connections_that_do_not_send_a_request_in_time_are_closed_but_pages_sta
         assert get(port)[0] == 200
 
 
+@pytest.mark.slow
 def test_at_a_cap_the_oldest_waiting_connection_is_closed_never_a_page(tmp_path):
     limits = ConnectionLimits(total=7, per_address=4, header_timeout_s=30.0)
     with drive_server(tmp_path, mode="human-human", limits=limits) as url, ExitStack() as stack:
@@ -377,6 +381,7 @@ def open_idle(port: int, count: int) -> list[socket.socket]:
     return sockets
 
 
+@pytest.mark.slow
 def test_600_idle_connections_leave_a_server_under_ulimit_512_able_to_drive(small_server):
     port, folder, server_log, pid = small_server
     per_address = min(MAX_CONNECTIONS, FD_LIMIT - RESERVED_FDS - 4 * ACCEPT_BACKLOG) // 2
@@ -397,6 +402,7 @@ def test_600_idle_connections_leave_a_server_under_ulimit_512_able_to_drive(smal
     assert "Too many open files" not in log and "Traceback" not in log and "out of system resource" not in log, log
 
 
+@pytest.mark.slow
 def test_a_text_frame_that_is_not_utf8_closes_that_page_with_one_log_line(small_server):
     port, _, server_log, _ = small_server
     before = server_log().count("\n")
@@ -437,6 +443,7 @@ def flood_without_reading(port: int) -> float:
         return float("inf")
 
 
+@pytest.mark.slow
 def test_a_page_that_floods_and_never_reads_is_dropped_while_another_room_drives(small_server):
     port, _, server_log, _ = small_server
     before = server_log().count("\n")

@@ -19,6 +19,12 @@ MARKERS = "osD^vPX*<>"
 DIRECTION_NAMES = {"x": "x (longitudinal)", "y": "y (lateral)"}
 
 
+def short_spec(spec: str) -> str:
+    """An agent spec for a tick label: every path in it cut to its file name
+    (``model:authors:/a/b/weights.npz`` -> ``model:authors:weights.npz``)."""
+    return ":".join(Path(part).name if "/" in part else part for part in spec.split(":"))
+
+
 def plot_scores_by_human(points: list[dict], path: str | os.PathLike) -> Path:
     """The closed-loop score's mean and 95 % interval per human (x, sorted), one marker series
     per robot. ``points``: dicts with ``series`` (the robot's name), ``human``, ``mean`` and
@@ -35,7 +41,7 @@ def plot_scores_by_human(points: list[dict], path: str | os.PathLike) -> Path:
         low = np.array([p["mean"] - p["ci95"][0] if p["ci95"] else 0.0 for p in mine])
         high = np.array([p["ci95"][1] - p["mean"] if p["ci95"] else 0.0 for p in mine])
         ax.errorbar(x, mean, yerr=[low, high], fmt=MARKERS[k % len(MARKERS)], capsize=3, label=name)
-    ax.set_xticks(np.arange(len(humans)), humans)
+    ax.set_xticks(np.arange(len(humans)), [short_spec(h) for h in humans])
     ax.set_xlim(-0.5, len(humans) - 0.5)
     ax.set_title("closed-loop score per human, 95 % interval", fontsize=10)
     return _finish_plot(fig, ax, "human", "score (0 to 1)", path)
