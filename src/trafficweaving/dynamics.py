@@ -98,3 +98,22 @@ def robot_longitudinal(x0, xd0, applied, dt: float = DT):
     xd = xd0 + dt * np.cumsum(applied, axis=-1)
     xd_before = np.concatenate([np.broadcast_to(xd0, xd[..., :1].shape), xd[..., :-1]], axis=-1)
     return x0 + np.cumsum(0.5 * dt * (xd_before + xd), axis=-1), xd
+
+
+def minimum_jerk_acceleration(distance, progress, duration):
+    """Acceleration (m/s²) of a minimum-jerk (quintic) move from rest to rest by ``distance`` (m)
+    over ``duration`` (s), at ``progress`` = elapsed / duration in [0, 1]: the smooth lane change
+    of the rule-based robot and the scripted humans. Arrays broadcast; 0 at both ends."""
+    s = progress
+    return distance * (60 * s - 180 * s**2 + 120 * s**3) / duration**2
+
+
+def minimum_jerk_from(distance, progress, duration, speed, acceleration):
+    """:func:`minimum_jerk_acceleration` from a moving start: the acceleration (m/s²) of the
+    quintic that moves by ``distance`` (m) over ``duration`` (s) from ``speed`` (m/s) and
+    ``acceleration`` (m/s²) to rest, at ``progress`` in [0, 1] (e.g. a lane change turned back
+    half-way). Arrays broadcast."""
+    s = progress
+    from_speed = speed * (-36 * s + 96 * s**2 - 60 * s**3) / duration
+    from_acceleration = acceleration * (1 - 9 * s + 18 * s**2 - 10 * s**3)
+    return minimum_jerk_acceleration(distance, progress, duration) + from_speed + from_acceleration

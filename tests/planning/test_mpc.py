@@ -97,3 +97,36 @@ def test_a_comfort_planner_drives_the_closed_loop_within_the_limits():
     for _ in range(40):
         world.step(np.stack([policy.act(world.history), np.zeros((1, 2))], axis=1))
     assert len(policy.plans) >= 10 and not comfort_violations(world.history[0, 0, :, 4:6]).any()
+
+
+@pytest.mark.parametrize("policy_class", ["blocking", "non-blocking"])
+def test_the_safety_layer_overrides_an_accelerating_window_when_a_car_cuts_in_ahead(policy_class):
+    """The robot was going to accelerate in its lane (the window fixed by the last plan) when the
+    human 6 m ahead moves into that lane: the window executed brakes, the override is logged, and
+    the plan made from it has it as its fixed window 0. Without the safety layer it accelerates."""
+    from trafficweaving.planning.mpc import NonBlockingMPCPolicy
+    from trafficweaving.planning.safety import safe_action
+
+    accelerate = Action.of(4.0, "right").index
+    t = np.arange(HOLD_STEPS + 1)[:, None] * DT
+    robot = np.array([-80.0, RIGHT, 29.0, 0.0, 0.0, 0.0]) + t * [29.0, 0, 0, 0, 0, 0]
+    human = np.array([-74.0, -3.0, 29.0, -1.5, -1.0, 0.0]) + t * [29.0, 0, 0, 0, 0, 0]
+    history = np.stack([robot, human])[None]  # [1, 2, t+1, 6]: the human cutting in now
+    for style, overrides in ((STYLES["planner"], True), (replace(STYLES["planner"], safety_layer=False), False)):
+        planner = Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=style)
+        policy = MPCPolicy(planner) if policy_class == "blocking" else NonBlockingMPCPolicy(planner)
+        policy.reset(np.random.default_rng(0), history[:, :, 0], 0)
+        policy.queue, policy.next_fixed, policy.upcoming = [], accelerate, [accelerate]
+        acceleration = policy.act(history)[0, 0]
+        if policy_class == "non-blocking":
+            policy.close()
+        if not overrides:
+            assert not policy.safety_log and acceleration >= 0
+            continue
+        (step, decision), = policy.safety_log
+        assert step == HOLD_STEPS and decision.proposed == accelerate and not decision.proposed_safe
+        assert decision.kinematics.accelerations[decision.chosen // 2] < 0 and acceleration < 0
+        assert decision == safe_action(history[0, 0, -1], history[0, 1, -1], accelerate, KINEMATICS["comfort"], None,
+                                       KINEMATICS["safety"])
+        if policy_class == "blocking":
+            assert int(policy.plans[-1].actions[0]) == decision.chosen

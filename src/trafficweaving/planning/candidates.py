@@ -139,10 +139,7 @@ def rollout(present: np.ndarray, actions: np.ndarray, kinematics: Kinematics = K
     steps = STEPS_PER_WINDOW * w
     # longitudinal: acceleration applied from each step (acc [C, steps], from t+k), Euler velocity, trapezoid position
     acc = np.repeat(np.asarray(kinematics.accelerations)[acceleration_indices(actions)], STEPS_PER_WINDOW, axis=1)
-    if kinematics.jerk is not None:  # from the present acceleration towards each window's, at most jerk·DT a step
-        acc[:, 0] = present[4]
-        for k in range(1, steps):
-            acc[:, k] = acc[:, k - 1] + np.clip(acc[:, k] - acc[:, k - 1], -kinematics.jerk * DT, kinematics.jerk * DT)
+    acc = applied_accelerations(np.full(c, present[4]), acc, kinematics.jerk)
     x, xd = robot_longitudinal(np.full(c, present[0]), np.full(c, present[2]), acc)  # at t+1..t+steps
     xdd = np.concatenate([acc[:, 1:], acc[:, -1:]], axis=1)  # stored at t+k: applied from t+k (last: held)
 
@@ -162,6 +159,19 @@ def rollout(present: np.ndarray, actions: np.ndarray, kinematics: Kinematics = K
         starts[unique] = path[:, -1]
         parent = codes
     return np.stack([x, lateral[..., 0], xd, lateral[..., 1], xdd, lateral[..., 2]], axis=-1)
+
+
+def applied_accelerations(present: np.ndarray, targets: np.ndarray, jerk: float | None) -> np.ndarray:
+    """The longitudinal accelerations ``[C, steps]`` (m/s²) applied from steps t..t+steps-1
+    towards ``targets [C, steps]`` from the present accelerations ``present [C]``: the targets
+    themselves (``jerk`` None), else from the present one towards each step's target by at most
+    ``jerk``·DT a step."""
+    acc = np.array(targets, dtype=float)
+    if jerk is not None:
+        acc[:, 0] = present
+        for k in range(1, acc.shape[1]):
+            acc[:, k] = acc[:, k - 1] + np.clip(acc[:, k] - acc[:, k - 1], -jerk * DT, jerk * DT)
+    return acc
 
 
 def robot_candidates(present: np.ndarray, first: int, kinematics: Kinematics = KINEMATICS["paper"]) -> Candidates:

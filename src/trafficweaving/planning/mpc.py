@@ -24,6 +24,7 @@ from ..scenario import LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
 from .candidates import STEPS_PER_WINDOW, Action, rollout
 from .costs import Cost, PaperCost
 from .planner import Budget, Plan, Planner, check_cost, plan_options
+from .safety import SafetyDecision, safe_action
 from .styles import DrivingStyle
 
 HOLD_STEPS = 8
@@ -55,6 +56,7 @@ class MPCPolicy:
         self.plan_steps: list[int] = []  # the present step t of every plan
         self.latencies: list[float] = []
         self.fallen_back: DrivingStyle | None = None  # the fallback this episode plans in (None: the planner's style)
+        self.safety_log: list[tuple[int, SafetyDecision]] = []  # (step, decision) of every window the safety layer changed
 
     def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
         """Start an episode from ``start [1, 2, 6]`` (both cars' states ``[x, y, xd, yd, xdd,
@@ -73,7 +75,7 @@ class MPCPolicy:
         windows = -(-self.hold_steps // STEPS_PER_WINDOW)
         self.queue = list(rollout(robot, np.full((1, windows), self.hold), self.planner.kinematics)[0, : self.hold_steps])
         self.next_fixed = self.hold
-        self.plans, self.plan_steps, self.latencies = [], [], []
+        self.plans, self.plan_steps, self.latencies, self.safety_log = [], [], [], []
         self.fallen_back = None
         self.planner.generator.manual_seed(int(rng.integers(2**63)))
 
@@ -93,14 +95,38 @@ class MPCPolicy:
         if not self.queue:
             robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: robot, human
             clock = time.perf_counter()
+            style = self.plan_style(robot_first, self.next_fixed)
+            costs = self.plans[-1].window_costs if self.plans else None
+            decision = self.check_window(robot_first, self.next_fixed, style.kinematics, costs)
+            if decision is not None:
+                self.next_fixed, style = decision.chosen, self.plan_style(robot_first, decision.chosen)
             plan = self.planner.plan(robot_first, self.next_fixed, self.cost, budget=self.budget, deadline=self.deadline,
-                                     style=self.plan_style(robot_first, self.next_fixed))
+                                     style=style)
             self.latencies.append(time.perf_counter() - clock)
             self.plans.append(plan)
             self.plan_steps.append(history.shape[2] - 1)
             self.next_fixed = int(plan.actions[1])
             self.queue = list(plan.robot[:STEPS_PER_WINDOW])
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
+
+    def check_window(self, history: np.ndarray, proposed: int, kinematics, window_costs: np.ndarray | None
+                     ) -> SafetyDecision | None:
+        """The safety layer's decision (:func:`~.safety.safe_action`) on the window about to be
+        executed, the ``proposed`` action of ``kinematics`` (:class:`~.candidates.Kinematics`), from
+        both cars' states ``history [t+1, 2, 6]`` (robot, human), preferring others by
+        ``window_costs [N_ACTIONS]`` (None: by closeness); None when the style has no safety layer.
+        A decision that brakes as the ``safety_fallback`` does plans in it from then on; every
+        changed window is logged in :attr:`safety_log`."""
+        own = self.planner.style
+        if not own.safety_layer:
+            return None
+        safety = own.safety_fallback.kinematics if own.safety_fallback is not None else None
+        decision = safe_action(history[-1, 0], history[-1, 1], proposed, kinematics, window_costs, safety)
+        if decision.overridden:
+            self.safety_log.append((len(history) - 1, decision))
+        if decision.kinematics is not kinematics and self.fallen_back is None:
+            self.fallen_back = own.safety_fallback
+        return decision
 
     def plan_style(self, history: np.ndarray, first_action: int) -> DrivingStyle:
         """The driving style of the plan from both cars' states ``history [t+1, 2, 6]`` (robot,
@@ -171,10 +197,13 @@ class NonBlockingMPCPolicy(MPCPolicy):
             if plan is not None:
                 self.upcoming, self.kinematics = [int(a) for a in plan.actions[1:]], plan.style.kinematics
             self.window = self.upcoming.pop(0) if self.upcoming else Action.of(0.0, Action(self.window).lane).index
-            robot_now = history[0, self.me, -1]
-            self.queue = list(rollout(robot_now, np.array([[self.window]]), self.kinematics)[0])
+            robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: a copy
+            decision = self.check_window(robot_first, self.window, self.kinematics,
+                                         plan.window_costs if plan is not None else None)
+            if decision is not None and decision.overridden:
+                self.window, self.kinematics, self.upcoming = decision.chosen, decision.kinematics, []
+            self.queue = list(rollout(robot_first[-1, 0], np.array([[self.window]]), self.kinematics)[0])
             if self._pending is None:
-                robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: a copy
                 style = self.plan_style(robot_first, self.window)
                 self._pending = (t, self._executor.submit(self._plan, robot_first, self.window, style))
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]

@@ -134,6 +134,16 @@ class Plan:
     style: DrivingStyle
     timings: dict = field(default_factory=dict)
 
+    @property
+    def window_costs(self) -> np.ndarray:
+        """Per window-1 action, the lowest first-stage cost of the candidates taking it
+        ``[N_ACTIONS]``, the chosen one's -inf: the order in which this plan prefers its next
+        window (the safety layer's, :func:`~.safety.safe_action`)."""
+        costs = np.full(N_ACTIONS, np.inf)
+        np.minimum.at(costs, self.candidates.actions[:, 1], self.first_stage_cost)
+        costs[int(self.actions[1])] = -np.inf
+        return costs
+
 
 class Planner:
     """Plans robot action sequences against a :class:`HumanModel`, on its device, drawing its

@@ -91,8 +91,9 @@ class DrivingStyle:
     window 1 that does not take the way out of a stand-off (:meth:`way_out`). ``progress_cost``:
     cost per m/s by which a candidate ends slower than :data:`YIELD_SPEED_FLOOR` in the goal lane.
     ``fallback``, ``safety_fallback``: the styles it falls back on (:meth:`fallback_for`), within
-    ``fallback_within`` s of the cutoff, or ``standoff_within`` s in a stand-off. All rules off (0)
-    are the paper's planner."""
+    ``fallback_within`` s of the cutoff, or ``standoff_within`` s in a stand-off.
+    ``safety_layer``: every window is checked before it is executed (:mod:`.safety`). All rules
+    and the safety layer off are the paper's planner."""
 
     kinematics: Kinematics = KINEMATICS["paper"]
     turn_back_cost: float = 0.0
@@ -107,6 +108,7 @@ class DrivingStyle:
     follow_braking: float = 0.0
     standoff_exit_cost: float = 0.0
     progress_cost: float = 0.0
+    safety_layer: bool = False
 
     def __post_init__(self):
         non_negative = (self.turn_back_cost, self.commit_offset, self.set_out_gap, self.fallback_within,
@@ -221,9 +223,9 @@ class DrivingStyle:
 
 
 _DECISIVE = DrivingStyle(KINEMATICS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP,
-                         follow_braking=KINEMATICS["settled"].hardest_braking)
+                         follow_braking=KINEMATICS["settled"].hardest_braking, safety_layer=True)
 _COMFORT = DrivingStyle(KINEMATICS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP,
-                        set_out_until=2.5, follow_braking=KINEMATICS["comfort"].hardest_braking)
+                        set_out_until=2.5, follow_braking=KINEMATICS["comfort"].hardest_braking, safety_layer=True)
 _COMFORT_FIRST_RULES = {"standoff_exit_cost": STANDOFF_EXIT_COST, "progress_cost": PROGRESS_COST}
 """What the ``planner`` style and both its fallbacks add to their kinematics' styles: the stand-off
 exit, and getting going again in the goal lane."""

@@ -11,7 +11,10 @@ against a wall-clock deadline (the number of human futures it samples depends on
 A replayed human (``replay:FILE[#K]``) drives the recording's human car from the recording's
 start: such an episode starts from the recorded states instead (the robot takes the other car),
 its initial condition is the recording's, and without ``#K`` episode ``index`` replays the
-file's ``index % n``-th trial with a human agent.
+file's ``index % n``-th trial with a human agent. A perturbed replay (``replay:FILE@T,V``) first
+draws the robot's shift in time and speed (:func:`~trafficweaving.sim.humans.perturbed_start`).
+A scripted human (``scenario:NAME``) first draws its scenario's start, the robot in car 0
+(:meth:`~trafficweaving.sim.scenarios.Scenario.draw`).
 
 The result is the record in the dataset format (one trial; roles ``robot`` and ``human``; source
 ``episode-000042``) whose metadata key ``episode`` holds the episode's JSON record: ``index``,
@@ -35,6 +38,7 @@ from ..scenario import DT, lane_of, study_initial_conditions
 from .humans import human_agent, replay_start
 from .metrics import episode_metrics, latency_summary
 from .robots import robot_agent
+from .scenarios import ScriptedHuman
 from .world import Agent, run_episodes
 
 
@@ -131,14 +135,25 @@ def _start(rng: np.random.Generator, robot: Agent, human: Agent,
     start with a random robot car; or, for a replayed human, the recording's start with the robot
     in the recording's other car (car 0) and the human replaying that trial
     (:func:`~trafficweaving.sim.humans.replay_start`: its fixed trial, else the recorded trials in
-    turn, episode ``index`` replaying ``trial_ids[index % n]``)."""
-    replay = replay_start([robot, human], episodes=np.array([index]))
+    turn, episode ``index`` replaying ``trial_ids[index % n]``; a perturbed replay's shift is
+    recorded as ``shift_s`` and ``speed_offset_mps``); or, for a scripted human, its scenario's
+    start with the robot in car 0 (no study condition: ``dv`` and ``tco`` None; the record names
+    the ``scenario``, whether a collision is ``avoidable`` and the ``acceptable`` outcome)."""
+    replay = replay_start([robot, human], episodes=np.array([index]), rng=rng)
     if replay is not None:
         start, row = replay.start[0], int(replay.rows[0])
         dv, tco = float(replay.trials.ic_dv[row]), float(replay.trials.ic_tco[row])
         ic = {"index": None, "trial": int(replay.trial_ids[0]), "dv": None if np.isnan(dv) else dv,
               "tco": None if np.isnan(tco) else tco, "robot_lane": str(lane_of(start[0, 1]))}
+        if replay.shift_s is not None:
+            ic.update(shift_s=float(replay.shift_s[0]), speed_offset_mps=float(replay.speed_offset_mps[0]))
         return start, 0, ic, *replay.cars
+    if isinstance(human, ScriptedHuman):
+        start, human = human.start(rng)
+        scenario = human.scenario
+        ic = {"index": None, "dv": None, "tco": None, "robot_lane": str(lane_of(start[0, 1])),
+              "scenario": scenario.name, "avoidable": scenario.avoidable, "acceptable": scenario.acceptable}
+        return start, 0, ic, robot, human
     ics = study_initial_conditions()
     k = int(rng.integers(len(ics)))
     robot_car = int(rng.integers(2))

@@ -10,6 +10,11 @@
 * :class:`ReplayDriver`: a recorded human (non-reactive), e.g. the authors' human-in-the-loop
   trials (``docs/real_humans.md``); :func:`replay_start` starts its episodes where its recordings
   start, so that it drives its recorded path (closed loop, the environment and the generator).
+  A perturbed replay (``replay:FILE@T,V``) also shifts the other car's start in time and speed
+  (:func:`replay_start`), so that the recorded human meets the robot in situations it did not
+  meet the authors'.
+* :class:`~trafficweaving.sim.scenarios.ScriptedHuman`: the edge-case library's scripted humans
+  (``scenario:NAME``, :data:`~trafficweaving.sim.scenarios.SCENARIOS`).
 * :class:`ConstantVelocityDriver`: keeps its velocity (no acceleration), the simplest baseline of
   sim-agent benchmarks; ``rules`` puts the rule-based robot
   (:class:`~trafficweaving.sim.robots.RuleBasedRobot`) in the human's seat.
@@ -20,6 +25,8 @@
 from __future__ import annotations
 
 import copy
+import math
+import numbers
 import os
 import re
 from dataclasses import dataclass
@@ -41,10 +48,18 @@ from ..scenario import (CUTOFF_X, DT, HORIZON, MIN_HISTORY, SWAP_THRESHOLD_Y, ac
                         lane_of, on_road)
 from .drivers import DriverAgents, DriverModel, DriverStyles
 from .robots import RuleBasedRobot
+from .scenarios import SCENARIOS
 from .world import Agent
 
+MAX_SHIFT_S = 3.0
+"""Largest time shift ``T`` of a perturbed replay (``replay:FILE@T,V``), s."""
+MAX_SPEED_OFFSET_MPS = 5.0
+"""Largest speed offset ``V`` of a perturbed replay, m/s."""
+
 HUMAN_SPECS = ("synthetic, model:SPEC (SPEC: driver, default, a checkpoint path or authors:PATH), replay:FILE or "
-               "replay:FILE#K, rules, constant-velocity")
+               f"replay:FILE#K (perturbed: replay:FILE@T,V or replay:FILE#K@T,V, T in 0..{MAX_SHIFT_S:g} s, V in "
+               f"0..{MAX_SPEED_OFFSET_MPS:g} m/s), scenario:NAME (NAME: {', '.join(SCENARIOS)}), rules, "
+               "constant-velocity")
 """The forms :func:`human_agent` accepts, as messages print them."""
 
 
@@ -277,11 +292,14 @@ class ReplayDriver(ReplayedCar):
     replays; None: each episode's trial is drawn uniformly from :attr:`trial_ids` with the rng at
     reset (:attr:`played` tells which). The car follows its recorded path only from the
     recording's start: :func:`replay_start` starts episodes there and binds a copy of the driver
-    to their trials (:meth:`bind`).
+    to their trials (:meth:`bind`). ``perturbation``: ``(T, V)`` (s, m/s; :func:`check_perturbation`)
+    makes it a perturbed replay: :func:`replay_start` shifts the other car's start by a time
+    uniform in ``[-T, T]`` and a speed uniform in ``[-V, V]``; None: the recorded start.
     """
 
-    def __init__(self, trials: TrialSet, trial: int | None = None):
+    def __init__(self, trials: TrialSet, trial: int | None = None, perturbation: tuple[float, float] | None = None):
         self.name = str(trials.source_path) if trials.source_path is not None else "the trial set"
+        self.perturbation = None if perturbation is None else check_perturbation(*perturbation, name=self.name)
         trials.require_dt(DT, "the simulation")
         with_human = (trials.roles == "human").any(axis=1)
         if not with_human.any():
@@ -348,13 +366,17 @@ class ReplayStart:
     """Episodes that start where their recordings start (:func:`replay_start`): both cars'
     recorded start states ``start [m, 2, 6]``, the agents by car ``cars`` (the replaying ones bound
     to these episodes), and which recordings: trial ``rows [m]`` of ``trials`` and the recorded
-    agent in each car, ``agents [m, 2]``."""
+    agent in each car, ``agents [m, 2]``; for a perturbed replay the drawn time shifts ``shift_s
+    [m]`` (s) and speed offsets ``speed_offset_mps [m]`` (m/s) of the car that does not replay
+    (None otherwise)."""
 
     start: np.ndarray
     cars: list
     trials: TrialSet
     rows: np.ndarray
     agents: np.ndarray
+    shift_s: np.ndarray | None = None
+    speed_offset_mps: np.ndarray | None = None
 
     @property
     def trial_ids(self) -> np.ndarray:
@@ -373,7 +395,8 @@ def replay_start(cars: Sequence[Agent | None], episodes: np.ndarray | None = Non
     other car of the same recording. The trial: the driver's own ``trial`` when it has one; else
     episode ``episodes[i]`` (``[m]`` non-negative episode numbers) replays the recordings in turn,
     ``trial_ids[episodes[i] % n]``; with ``episodes`` None, one episode replays a trial drawn
-    uniformly with ``rng``."""
+    uniformly with ``rng``. A perturbed replay driver then draws its perturbation from ``rng``
+    (:func:`perturbed_start`)."""
     seats = [k for k, car in enumerate(cars) if isinstance(car, ReplayDriver)]
     if not seats:
         return None
@@ -387,7 +410,48 @@ def replay_start(cars: Sequence[Agent | None], episodes: np.ndarray | None = Non
         rows = rng.integers(len(driver.trial_ids), size=1)
     agents = driver.seats(rows, me)  # [m, 2]
     bound = [driver.bind(rows, agents[:, k]) if k in seats else car for k, car in enumerate(cars)]
-    return ReplayStart(driver.start_states(driver.trial_ids[rows], me), bound, driver.trials, rows, agents)
+    replay = ReplayStart(driver.start_states(driver.trial_ids[rows], me), bound, driver.trials, rows, agents)
+    if driver.perturbation is not None:
+        free = [k for k in range(len(cars)) if k not in seats]
+        replay.start, replay.shift_s, replay.speed_offset_mps = perturbed_start(driver, replay, free, rng)
+    return replay
+
+
+def check_perturbation(shift_s, speed_offset_mps, name: str) -> tuple[float, float]:
+    """A perturbed replay's bounds ``(T, V)`` as floats: a time shift ``T`` in
+    0..:data:`MAX_SHIFT_S` s and a speed offset ``V`` in 0..:data:`MAX_SPEED_OFFSET_MPS` m/s;
+    InputError naming ``name`` otherwise."""
+    real = all(isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and math.isfinite(v)
+               for v in (shift_s, speed_offset_mps))
+    if not (real and 0 <= shift_s <= MAX_SHIFT_S and 0 <= speed_offset_mps <= MAX_SPEED_OFFSET_MPS):
+        raise InputError(f"{name}: perturbation {_short(shift_s)},{_short(speed_offset_mps)} is out of range (expected "
+                         f"T,V: a time shift T in 0..{MAX_SHIFT_S:g} s and a speed offset V in "
+                         f"0..{MAX_SPEED_OFFSET_MPS:g} m/s)")
+    return float(shift_s), float(speed_offset_mps)
+
+
+def perturbed_start(driver: ReplayDriver, replay: ReplayStart, free: list[int],
+                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(start [m, 2, 6], shift_s [m], speed_offset_mps [m])``: ``replay``'s start with the cars
+    ``free`` (those that do not replay, e.g. the robot) shifted by a time uniform in ``[-T, T]``
+    (its ``x`` moves by its recorded speed times that time) and a speed uniform in ``[-V, V]``,
+    for ``driver``'s perturbation ``(T, V)``, drawn from ``rng`` in that order (a bound of 0 draws
+    nothing: ``@0,0`` is the plain replay). InputError when every car replays (nothing to
+    perturb) or the cars overlap at a perturbed start (recordings whose cars start in one lane)."""
+    if not free:
+        raise InputError(f"{driver.name}: a perturbed replay shifts the start of the car that does not replay, and "
+                         f"every car here replays (expected replay:FILE or replay:FILE#K)")
+    (shift, speed), m = driver.perturbation, len(replay.start)
+    shift_s = rng.uniform(-shift, shift, m) if shift else np.zeros(m)
+    speed_offset = rng.uniform(-speed, speed, m) if speed else np.zeros(m)
+    start = replay.start.copy()
+    start[:, free, 0] += start[:, free, 2] * shift_s[:, None]
+    start[:, free, 2] += speed_offset[:, None]
+    overlap = colliding(start[:, 0], start[:, 1])
+    if overlap.any():
+        raise InputError(f"{driver.name}: trial {replay.trial_ids[overlap][0]}: the cars overlap at the perturbed "
+                         f"start (expected recordings whose cars start in different lanes)")
+    return start, shift_s, speed_offset
 
 
 class ConstantVelocityDriver:
@@ -400,29 +464,51 @@ class ConstantVelocityDriver:
         return np.zeros((len(history), 2))
 
 
-def _replay_target(target: str) -> tuple[str, int | None]:
-    """``FILE`` or ``FILE#K`` as ``(FILE, K or None)``, ``K`` a trial id in ASCII digits
-    (0..2³¹−1); a ``target`` that names an existing path is a ``FILE``, ``#`` or not. InputError
-    for a missing ``FILE#K`` whose ``K`` is not such a trial id."""
+REPLAY_FORMS = "replay:FILE, replay:FILE#K, replay:FILE@T,V or replay:FILE#K@T,V"
+"""The forms of a replay spec, as messages print them."""
+
+_DECIMAL = "([0-9]+(?:[.][0-9]*)?|[.][0-9]+)"
+
+
+def _replay_target(target: str) -> tuple[str, int | None, tuple[float, float] | None]:
+    """``FILE``, ``FILE#K``, ``FILE@T,V`` or ``FILE#K@T,V`` as ``(FILE, K or None, (T, V) or
+    None)``: ``K`` a trial id in ASCII digits (0..2³¹−1), ``T`` and ``V`` decimal numbers
+    (:func:`check_perturbation`); a ``target`` (or the part before ``@``) that names an existing
+    path is a ``FILE``, ``#`` and ``@`` or not. InputError for a missing file whose ``K`` or
+    ``T,V`` is not such."""
+    spec = f"replay:{target}"
+    perturbation = None
+    head, sep, tail = target.rpartition("@")
+    if sep and head and not os.path.exists(target):
+        match = re.fullmatch(f"{_DECIMAL},{_DECIMAL}", tail)
+        if match is None:
+            raise InputError(f"human '{spec}': no such file, and {tail!r} after its last '@' is not T,V (expected "
+                             f"{REPLAY_FORMS}, T and V decimal numbers)")
+        perturbation = check_perturbation(float(match[1]), float(match[2]), f"human '{spec}'")
+        target = head
     path, sep, trial = target.rpartition("#")
     if not sep or not path or os.path.exists(target):
-        return target, None
+        return target, None, perturbation
     if re.fullmatch("[0-9]{1,10}", trial) is None or int(trial) > INT32_MAX:
-        raise InputError(f"human 'replay:{target}': no such file, and {trial!r} after its last '#' is not a trial id "
-                         f"(expected replay:FILE or replay:FILE#K, K a trial id in 0..{INT32_MAX} in ASCII digits)")
-    return path, int(trial)
+        raise InputError(f"human '{spec}': no such file, and {trial!r} after its last '#' is not a trial id "
+                         f"(expected {REPLAY_FORMS}, K a trial id in 0..{INT32_MAX} in ASCII digits)")
+    return path, int(trial), perturbation
 
 
 @dataclass(frozen=True)
 class HumanSpec:
     """A parsed human spec (:data:`HUMAN_SPECS`): its ``kind`` (``synthetic``, ``rules``,
-    ``constant-velocity``, ``model`` or ``replay``); for ``model:SPEC`` the ``model`` it names;
-    for ``replay:FILE[#K]`` the dataset ``path`` and ``trial`` id ``K`` (None: drawn per episode)."""
+    ``constant-velocity``, ``model``, ``replay`` or ``scenario``); for ``model:SPEC`` the
+    ``model`` it names; for ``replay:FILE[#K][@T,V]`` the dataset ``path``, ``trial`` id ``K``
+    (None: drawn per episode) and ``perturbation`` ``(T, V)`` (s, m/s; None: the recorded start);
+    for ``scenario:NAME`` the ``scenario``'s name."""
 
     kind: str
     model: ModelSpec | None = None
     path: str | None = None
     trial: int | None = None
+    perturbation: tuple[float, float] | None = None
+    scenario: str | None = None
 
 
 def parse_human_spec(spec: str) -> HumanSpec:
@@ -436,17 +522,24 @@ def parse_human_spec(spec: str) -> HumanSpec:
     if kind == "model" and target:
         return HumanSpec(kind, model=parse_model_spec(target))
     if kind == "replay" and target:
-        path, trial = _replay_target(target)
-        return HumanSpec(kind, path=path, trial=trial)
+        path, trial, perturbation = _replay_target(target)
+        return HumanSpec(kind, path=path, trial=trial, perturbation=perturbation)
+    if kind == "scenario":
+        if target not in SCENARIOS:
+            raise InputError(f"human {spec!r}: no such scenario (expected scenario:NAME, NAME one of: "
+                             f"{', '.join(SCENARIOS)})")
+        return HumanSpec(kind, scenario=target)
     raise InputError(f"human {spec!r} is unknown (expected one of: {HUMAN_SPECS})")
 
 
 def human_agent(spec: str, device: torch.device | str = "cpu", robot_plan: bool = False, other: str = "robot") -> Agent:
     """The human agent of ``spec`` (:func:`parse_human_spec`): ``synthetic`` (:class:`SampledDrivers`),
     ``model:SPEC`` (:class:`ModelDriver` of :func:`~trafficweaving.model.registry.load_model`'s
-    ``SPEC``, on ``device``; ``robot_plan`` and ``other``, who the other car is, as there) or ``replay:FILE[#K]`` (:class:`ReplayDriver`
-    of the Parquet dataset ``FILE``, trial id ``K`` or drawn per episode). InputError for an
-    unknown spec, a missing or invalid file, or ``robot_plan`` with a human that is not a model."""
+    ``SPEC``, on ``device``; ``robot_plan`` and ``other``, who the other car is, as there),
+    ``replay:FILE[#K][@T,V]`` (:class:`ReplayDriver` of the Parquet dataset ``FILE``, trial id
+    ``K`` or drawn per episode, perturbed by ``T,V``) or ``scenario:NAME`` (the scenario's
+    :class:`~trafficweaving.sim.scenarios.ScriptedHuman`). InputError for an unknown spec, a
+    missing or invalid file, or ``robot_plan`` with a human that is not a model."""
     human = parse_human_spec(spec)
     if robot_plan and human.kind != "model":
         raise InputError(f"robot_plan applies only to model:SPEC humans, got human {spec!r}")
@@ -458,4 +551,6 @@ def human_agent(spec: str, device: torch.device | str = "cpu", robot_plan: bool 
         return ConstantVelocityDriver()
     if human.kind == "model":
         return ModelDriver(load_model(human.model, device), robot_plan=robot_plan, other=other)
-    return ReplayDriver(load_trials(human.path), human.trial)
+    if human.kind == "scenario":
+        return SCENARIOS[human.scenario].agent()
+    return ReplayDriver(load_trials(human.path), human.trial, human.perturbation)

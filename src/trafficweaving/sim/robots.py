@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from .. import validate
+from ..dynamics import minimum_jerk_acceleration
 from ..errors import InputError
 from ..model.device import choose_device
 from ..model.registry import load_model
@@ -181,7 +182,7 @@ class RuleBasedRobot:
                                     self.change_time)
         self.changing |= start
         s = np.clip((t + 1 - self.change_step) * DT / self.change_time, 0.0, 1.0)  # progress at step t+1
-        ydd = np.where(self.changing, (self.goal_y - self.change_y0) * (60 * s - 180 * s**2 + 120 * s**3) / self.change_time**2, 0.0)
+        ydd = np.where(self.changing, minimum_jerk_acceleration(self.goal_y - self.change_y0, s, self.change_time), 0.0)
         return np.stack([xdd, ydd], axis=1)
 
 
