@@ -38,6 +38,7 @@ CHECKS = {
     "count or null": (lambda v: v is None or type(v) is int and v >= 0, "an integer >= 0 or null"),
     "text": (lambda v: isinstance(v, str), "a string"),
     "object": (lambda v: isinstance(v, dict), "an object"),
+    "object or null": (lambda v: v is None or isinstance(v, dict), "an object or null"),
     "interval or null": (lambda v: v is None or isinstance(v, list) and len(v) == 2 and all(map(_is_number, v)),
                          "[low, high] or null"),
     "budget or null": (lambda v: v is None or isinstance(v, list) and len(v) == 3

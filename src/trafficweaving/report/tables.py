@@ -60,7 +60,9 @@ CLOSED_LOOP_NOTES = (
     "Score: the closed-loop score (0 to 1), mean and Student-t 95 % interval over episodes; success with its Wilson "
     "95 % interval; near collisions: episodes with a step inside the paper's collision cost; smallest gap: the least "
     "longitudinal distance between the cars while they overlap laterally; lane reversals: the robot's sideways motion "
-    "turning back, mean per episode; comfort: episodes with no step over nuPlan's comfort limits.")
+    "turning back, mean per episode; comfort: episodes with no step over nuPlan's comfort limits; safety overrides: "
+    "episodes in which the planner's safety layer changed a window (docs/planner.md, Safety layer), in brackets the "
+    "windows where no action was safe.")
 
 
 def _simulate_settings(run: Run) -> str:
@@ -85,7 +87,16 @@ def _closed_loop_row(run: Run) -> list[str]:
             f"{g('collisions', check='count')} ({'n/a' if at_fault is None else at_fault})",
             str(g("near_collisions", check="count")), _num(g("min_gap_m", "min", check="number or null"), 2),
             _num(g("lane_reversals", "mean", check="number or null"), 2),
-            _pct(g("score_parts", "comfort", "mean", check="number or null")), _code(run.path)]
+            _pct(g("score_parts", "comfort", "mean", check="number or null")), _safety_overrides(run), _code(run.path)]
+
+
+def _safety_overrides(run: Run) -> str:
+    """The episodes in which the safety layer changed a window, and the windows it changed with
+    none safe (n/a for a run logged without them)."""
+    overrides = run.get("safety_overrides", check="object or null", default=None)
+    if overrides is None:
+        return "n/a"
+    return f"{run.get('safety_overrides', 'episodes', check='count')} ({run.get('safety_overrides', 'unresolved', check='count')})"
 
 
 def closed_loop_table(runs: list[Run], figure: str) -> tuple[str, list[dict]]:
@@ -101,7 +112,8 @@ def closed_loop_table(runs: list[Run], figure: str) -> tuple[str, list[dict]]:
                        "mean": run.get("score", "mean", check="number or null"),
                        "ci95": run.get("score", "ci95", check="interval or null")})
     header = ["robot", "human", "episodes", "score (95 % CI)", "success (95 % CI)", "collisions (robot at fault)",
-              "near collisions", "smallest gap (m)", "lane reversals per episode", "comfort", "run"]
+              "near collisions", "smallest gap (m)", "lane reversals per episode", "comfort",
+              "safety overrides: episodes (windows with none safe)", "run"]
     text = "\n\n".join([_caption("Closed loop", "simulate", runs, _simulate_settings),
                          _table(header, [_closed_loop_row(run) for run in runs]), CLOSED_LOOP_NOTES,
                          f"![closed-loop score per human]({figure})"])

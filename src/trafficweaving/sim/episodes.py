@@ -19,7 +19,9 @@ A scripted human (``scenario:NAME``) first draws its scenario's start, the robot
 The result is the record in the dataset format (one trial; roles ``robot`` and ``human``; source
 ``episode-000042``) whose metadata key ``episode`` holds the episode's JSON record: ``index``,
 ``spec``, ``initial_condition``, ``robot_car``, ``metrics`` (:mod:`.metrics`; reproducible),
-``latency`` and ``latencies_s`` (planner seconds per plan) and ``seconds`` (wall time).
+``latency`` and ``latencies_s`` (planner seconds per plan), ``safety_overrides`` (every window the
+planner's safety layer changed: ``step``, ``proposed`` and ``chosen`` action, whether ``any_safe``;
+:mod:`~trafficweaving.planning.safety`) and ``seconds`` (wall time).
 """
 
 from __future__ import annotations
@@ -184,6 +186,8 @@ def run_episode(spec: EpisodeSpec, index: int, agents: tuple[Agent, Agent] | Non
         "metrics": episode_metrics(states[0], int(lengths[0]), robot_car),
         "latency": latency_summary(latencies),
         "latencies_s": latencies,
+        "safety_overrides": [{"step": int(step), "proposed": decision.proposed, "chosen": decision.chosen,
+                              "any_safe": decision.any_safe} for step, decision in getattr(robot, "safety_log", [])],
         "seconds": time.perf_counter() - began,
     }
     trials = TrialSet(

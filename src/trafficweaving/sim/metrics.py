@@ -246,6 +246,16 @@ def _violations_by_limit(metrics: Sequence[dict]) -> dict | None:
     return {k: {"steps": sum(c[k] for c in counts), "episodes": sum(c[k] > 0 for c in counts)} for k in COMFORT_LIMITS}
 
 
+def _safety_overrides(records: Sequence[dict]) -> dict | None:
+    """The windows the robot's safety layer changed (``windows``), of them those where no action
+    was safe (``unresolved``), and the ``episodes`` with any; None when a log predates them."""
+    logs = [r.get("safety_overrides") for r in records]
+    if any(log is None for log in logs):
+        return None
+    return {"windows": sum(map(len, logs)), "unresolved": sum(not o["any_safe"] for log in logs for o in log),
+            "episodes": sum(bool(log) for log in logs)}
+
+
 def aggregate(records: Sequence[dict]) -> dict:
     """Aggregate episode records (each a dict with ``metrics`` of :func:`episode_metrics`,
     ``latencies_s`` and ``initial_condition`` with ``dv``, ``tco``, ``robot_lane``).
@@ -265,7 +275,7 @@ def aggregate(records: Sequence[dict]) -> dict:
     ``lane_reversals`` (mean, and the rate of episodes with ``at_most_one``), ``lateral_swings`` and
     ``comfort_violation_steps`` (``count`` of the robot's steps over the limits, of ``steps``, and
     ``by_limit``: per limit of :data:`~.score.COMFORT_LIMITS` the ``steps`` over it and the ``episodes``
-    with any). Undefined values are None (strict JSON).
+    with any), ``safety_overrides`` (:func:`_safety_overrides`). Undefined values are None (strict JSON).
     """
     summary = _group(records)
     outcomes = [r["metrics"]["outcome"] for r in records]
@@ -276,6 +286,7 @@ def aggregate(records: Sequence[dict]) -> dict:
     summary["planner_latency_s"] = {"median": latency["median_s"], "p99": latency["p99_s"], "plans": latency["plans"]}
     summary["deadline_misses"] = latency["deadline_misses"]
     summary["planning_period_s"] = REPLAN_PERIOD_S
+    summary["safety_overrides"] = _safety_overrides(records)
 
     groups: dict[tuple, list[dict]] = {}
     for record in records:
