@@ -42,27 +42,28 @@ def test_mpc_plans_in_the_fallback_from_the_first_plan_that_needs_it_to_the_end_
         assert world.history[0, 0, -1, 1] > LANE_DIVIDER_Y  # across
 
 
-def test_mpc_keeps_to_the_safety_fallback_until_time_asks_for_the_fallback():
-    """Comfort first: a human braking hard ahead while the robot moves across switches to the safety
-    fallback (the decisive braking, the comfort steering), which stays when the human stops braking;
-    time running short switches to the decisive fallback, which stays to the end of the episode."""
+def test_a_human_braking_hard_ahead_is_braked_for_in_the_safety_style_for_that_window_only():
+    """Comfort first: a human braking hard ahead while the robot moves across is answered by the
+    safety layer with the safety style's braking (the decisive braking, the comfort steering) for
+    that window only; time running short switches to the decisive fallback, to the end of the episode."""
     first = STYLES["planner"]
     policy = MPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=first))
-    keep, go = Action.of(0.0, "right").index, Action.of(0.0, "left").index
+    go = Action.of(0.0, "left").index
 
     def car(seconds_to_cutoff, y=RIGHT, yd=0.0, xdd=0.0):
         return np.array([CUTOFF_X - 30.0 * seconds_to_cutoff, y, 30.0, yd, xdd, 0.0])
 
     policy.reset(np.random.default_rng(0), np.stack([car(8.0), car(8.0, y=LEFT)])[None], 0)
-    braking = np.stack([car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), car(4.5, y=LEFT, xdd=-5.0)])[None]
-    assert policy.plan_style(np.stack([car(6.0), car(2.0, y=LEFT)])[None], keep) is first and policy.fallen_back is None
-    assert policy.plan_style(braking, go) is first.safety_fallback
-    assert first.safety_fallback.kinematics == KINEMATICS["safety"] and first.safety_fallback.follow_braking == 6.0
-    assert policy.plan_style(np.stack([car(6.0), car(2.0, y=LEFT)])[None], keep) is first.safety_fallback
-    assert policy.plan_style(np.stack([car(1.9), car(5.0, y=LEFT)])[None], keep) is first.fallback
-    assert policy.plan_style(braking, go) is first.fallback
-    policy.reset(np.random.default_rng(0), np.stack([car(8.0), car(8.0, y=LEFT)])[None], 0)
-    assert policy.fallen_back is None and policy.plan_style(braking, go) is first.safety_fallback
+    braking = np.stack([car(5.0), car(4.7, xdd=-8.0)])  # 9 m ahead in the robot's lane, braking hard
+    keep = Action.of(0.0, "right").index
+    window, style = policy.check_window(braking[None], keep, policy.plan_style(braking[None], keep), None)
+    assert style is first.safety_fallback and style.kinematics == KINEMATICS["safety"]
+    assert style.kinematics.accelerations[window // 2] < 0 and policy.fallen_back is None
+    assert policy.safety_log[-1][1].chosen == window
+    calm = np.stack([car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), car(4.0, y=LEFT)])
+    assert policy.check_window(calm[None], go, policy.plan_style(calm[None], go), None) == (go, first)
+    assert policy.plan_style(np.stack([car(1.9), car(5.0, y=LEFT)])[None], Action.of(0.0, "right").index) is first.fallback
+    assert policy.plan_style(calm[None], go) is first.fallback  # to the end of the episode
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""Driving styles (planning/styles.py): turn-back, set-out, following, progress and stand-off rules; fallbacks."""
+"""Driving styles (planning/styles.py): turn-back, set-out, progress and stand-off rules; fallbacks."""
 
 from dataclasses import replace
 
@@ -10,15 +10,15 @@ from hypothesis import strategies as st
 from trafficweaving.dynamics import integrate_trapezoid
 from trafficweaving.errors import InputError
 from trafficweaving.model.constant_velocity import ConstantVelocityHuman
-from trafficweaving.planning.candidates import (ACCELERATIONS, KINEMATICS, N_CANDIDATES, WINDOWS, Action,
-                                                acceleration_indices, action_sequences, robot_candidates, rollout)
+from trafficweaving.planning.candidates import (KINEMATICS, N_CANDIDATES, WINDOWS, Action,
+                                                acceleration_indices, action_sequences, robot_candidates)
 from trafficweaving.planning.costs import PaperCost
 from trafficweaving.planning.planner import Budget, Planner
-from trafficweaving.planning.styles import (FOLLOW_COST, FOLLOW_LATERAL, HUMAN_ACCELERATION_HELD, PROGRESS_COST,
+from trafficweaving.planning.styles import (HUMAN_ACCELERATION_HELD, PROGRESS_COST,
                                             SET_OUT_COST, SET_OUT_GAP, STANDOFF_EXIT_COST, STYLES, YIELD_MARGIN,
                                             YIELD_SPEED_FLOOR, DrivingStyle, brakes_along, set_outs, standoff_exit,
-                                            stopping_shortfall, turn_backs)
-from trafficweaving.scenario import COLLISION_DX, CAR_WIDTH, CUTOFF_X, DT, LANE_DIVIDER_Y
+                                            turn_backs)
+from trafficweaving.scenario import CAR_WIDTH, CUTOFF_X, DT, LANE_DIVIDER_Y
 
 from helpers_planning import (HISTORY_TOY, LEFT, PRESENT_TOY, RIGHT, ToyHuman, _accelerates_throughout, _history,
                               toy_cost)
@@ -121,84 +121,6 @@ def test_the_set_out_rule_moves_the_robot_as_each_candidate_does():
     in_lane = robot + [-1.0, 0.0, -6.0, 0.0, 0.0, 0.0]  # the human in the robot's lane: nothing to wait for
     assert not style.blocks_set_out_along(holding.states, robot, in_lane).any()
     assert not STYLES["planner-paper"].blocks_set_out_along(holding.states, robot, human).any()
-
-
-def _shortfall_by_simulation(robot, states, human, human_braking, kinematics, dt=1e-3):
-    """:func:`stopping_shortfall` of one candidate ``states [15, 6]`` the long way: both cars'
-    speeds integrated on a fine time grid, the gap checked at each step where the robot is in the
-    human's way and, braking, at every point after the horizon if it still is."""
-    if human[0] <= robot[0]:
-        return 0.0
-    b_h, b_r = max(human_braking, -human[4]), -min(kinematics.accelerations)
-    t = np.arange(0.0, 30.0, dt)
-    human_x = human[0] + np.concatenate([[0.0], np.cumsum(dt * np.maximum(human[2] - b_h * (t[:-1] + dt / 2), 0.0))])
-    in_way = np.abs(states[:, 1] - human[1]) < FOLLOW_LATERAL
-    gaps = [human_x[round(k * DT / dt)] - states[k - 1, 0] - COLLISION_DX for k in range(1, 7) if in_way[k - 1]]
-    delay = 0.0 if kinematics.jerk is None else max(states[5, 4] + b_r, 0.0) / (2 * kinematics.jerk)
-    braking = t >= 0.6 - dt / 2
-    s = t[braking] - t[braking][0]
-    v = max(states[5, 2], 0.0)  # braking to a stop, not reversing
-    speed = np.where(s < delay, v, np.maximum(v - b_r * (s - delay), 0.0))
-    robot_x = states[5, 0] + np.concatenate([[0.0], np.cumsum(dt * (speed[1:] + speed[:-1]) / 2)])
-    gap = human_x[braking] - robot_x - COLLISION_DX
-    gaps += [gap[round((k * DT - 0.6) / dt)] for k in range(6, 16) if in_way[k - 1]]
-    if in_way[-1]:
-        gaps.append(gap[s >= 0.9 - dt / 2].min())
-    return max(-min(gaps, default=np.inf), 0.0)
-
-
-@pytest.mark.slow
-@settings(max_examples=60, deadline=None)
-@given(gap=st.floats(-2.0, 30.0), robot_speed=st.floats(0.0, 35.0), human_speed=st.floats(0.0, 35.0),
-       human_acceleration=st.floats(-9.0, 2.0), offset=st.floats(-5.0, 5.0), first=st.integers(0, 7),
-       kinematics=st.sampled_from(["settled", "comfort"]))
-def test_the_stopping_shortfall_is_the_least_gap_of_both_cars_braking(gap, robot_speed, human_speed, human_acceleration,
-                                                                      offset, first, kinematics):
-    """The closed form (the least gap at the ends of the speeds' pieces or where they are equal)
-    against both cars braked on a 1 ms grid, for candidates moving as each kinematics."""
-    kinematics = KINEMATICS[kinematics]
-    robot = np.array([0.0, RIGHT, robot_speed, 0.0, 0.0, 0.0])
-    human = np.array([gap, RIGHT + offset, human_speed, 0.0, human_acceleration, 0.0])
-    candidates = robot_candidates(robot, first, kinematics).states[::97]
-    short = stopping_shortfall(robot, candidates, human, 6.0, kinematics)
-    expected = [_shortfall_by_simulation(robot, c, human, 6.0, kinematics) for c in candidates]
-    np.testing.assert_allclose(short, expected, atol=0.03)
-
-
-@pytest.mark.slow
-def test_the_following_rule_keeps_a_gap_the_robot_can_stop_in():
-    """A human 20 m ahead in the robot's lane, both at 20 m/s: holding the speed leaves room to stop
-    behind it braking at 6 m/s² (0.6 s and a car length: 16.5 m), not once it brakes at 8 m/s²;
-    braking harder in window 1 comes shorter by less;
-    the rule is silent for a human behind or in the other lane, and the planner's rule cost is
-    FOLLOW_COST per metre."""
-    style = STYLES["planner-decisive"]
-    robot = np.array([0.0, RIGHT, 20.0, 0.0, 0.0, 0.0])
-    cruising = robot + [20.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-    braking = cruising + [0.0, 0.0, 0.0, 0.0, -8.0, 0.0]
-    in_lane = [Action.of(a, "right").index for a in ACCELERATIONS]
-    sequences = np.array([[in_lane[0], a, a, a, a] for a in in_lane])  # window 1 at 0, 4, -3, -6 m/s², held
-    states = rollout(robot, sequences, style.kinematics)
-    held, faster, slower, hardest = stopping_shortfall(robot, states, braking, style.follow_braking, style.kinematics)
-    assert held > 0 and faster > held > slower > hardest
-    assert stopping_shortfall(robot, states[:1], cruising, style.follow_braking, style.kinematics)[0] == 0.0
-    behind = braking - [40.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-    other_lane = braking + [0.0, LEFT - RIGHT, 0.0, 0.0, 0.0, 0.0]
-    for human in (behind, other_lane):
-        np.testing.assert_array_equal(stopping_shortfall(robot, states, human, style.follow_braking, style.kinematics), 0.0)
-    ramped = stopping_shortfall(robot, states, braking, style.follow_braking, KINEMATICS["comfort"])
-    assert ramped[0] > held  # the comfort kinematics' braking ramps up at its jerk limit: it needs more room
-
-    history = np.repeat(np.stack([robot, braking])[None], 6, axis=0)
-    history[:, :, 0] += 20.0 * DT * np.arange(-5, 1)[:, None]
-    keep, cost = in_lane[0], GoalToyCost(RIGHT)
-    ruled = Planner(ToyHuman(), seed=0, style=style).plan(history, keep, cost)
-    plain = Planner(ToyHuman(), seed=0, style=replace(style, follow_braking=0.0)).plan(history, keep, cost)
-    expected = FOLLOW_COST * stopping_shortfall(robot, ruled.candidates.states, braking, style.follow_braking, style.kinematics)
-    np.testing.assert_allclose(ruled.first_stage_cost - plain.first_stage_cost, expected, rtol=1e-5, atol=0.1)
-    assert Action(int(ruled.actions[1])).acceleration == -6.0  # toy_cost alone prefers 4 m/s² in every window
-    with pytest.raises(InputError):
-        DrivingStyle(follow_braking=-1.0)
 
 
 @pytest.mark.slow
@@ -370,8 +292,7 @@ def test_a_style_falls_back_when_time_runs_short_or_the_human_ahead_brakes_harde
     """The fallback plans from the first window the robot, settled in its start lane, would reach the
     cutoff within ``fallback_within`` s, or ``standoff_within`` s while the set-out rule holds it
     and would still hold it ``fallback_within`` s before the cutoff (not while a lane change is
-    under way), or, in either lane or moving between them, the human ahead in its way brakes harder
-    than the style's kinematics can."""
+    under way)."""
     comfort, quick = STYLES["planner-comfort"], STYLES["planner-decisive"]
     style = replace(comfort, fallback=quick, fallback_within=2.0, standoff_within=3.0)
     keep, go = Action.of(0.0, "right").index, Action.of(0.0, "left").index
@@ -397,22 +318,9 @@ def test_a_style_falls_back_when_time_runs_short_or_the_human_ahead_brakes_harde
     assert fallback(style, car(2.9), car(2.9, speed=25.0, y=LEFT), keep, LEFT) is None  # clear in time
     assert style.blocks_set_out(car(2.9), car(2.9, speed=25.0, y=LEFT))
     assert fallback(style, car(3.1), car(3.1, y=LEFT), keep, LEFT) is None
-    # settled in the goal lane behind a human that brakes harder than the comfort kinematics can: braking is not held to comfort
+    # braking for a human ahead is the safety layer's (planning/safety.py), not a fallback's
     ahead = car(4.0, y=LEFT) + [20.0, 0.0, 0.0, 0.0, -(comfort.kinematics.hardest_braking + 0.5), 0.0]
-    assert fallback(style, car(5.0, y=LEFT), ahead, go, LEFT) is quick
-    assert fallback(style, car(5.0, y=LEFT), ahead + [0, 0, 0, 0, 1.0, 0], go, LEFT) is None  # within the kinematics' braking
-    assert fallback(style, car(5.0, y=LEFT, yd=0.5), ahead, go, LEFT) is quick  # not settled: nor put off
-    assert fallback(style, car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), ahead, go, LEFT) is quick  # moving across
-    assert fallback(style, car(5.0), ahead, keep, LEFT) is None  # in the other lane: not in the robot's way
-    assert fallback(style, car(5.0), ahead, go, LEFT) is quick  # the robot heading into its lane
-    assert fallback(style, car(3.0, y=LEFT), ahead, go, LEFT) is None  # behind the robot
-    # with a safety fallback, braking for safety alone falls back on it; time, or both, on the fallback
-    safe = replace(style, safety_fallback=replace(comfort, kinematics=KINEMATICS["safety"]))
-    assert fallback(safe, car(5.0, y=(LEFT + RIGHT) / 2, yd=1.5), ahead, go, LEFT) is safe.safety_fallback
-    assert fallback(safe, car(1.95), far, keep, LEFT) is quick
-    braking_ahead = car(1.5) + [0.0, 0.0, 0.0, 0.0, -(comfort.kinematics.hardest_braking + 0.5), 0.0]  # in the robot's lane
-    assert fallback(safe, car(3.0), braking_ahead, keep, LEFT) is safe.safety_fallback
-    assert fallback(safe, car(1.95), braking_ahead, keep, LEFT) is quick
+    assert fallback(style, car(5.0, y=LEFT), ahead, go, LEFT) is None
     for fallbacks in ({"fallback": style}, {"safety_fallback": style}, {"safety_fallback": replace(comfort, safety_fallback=quick)}):
         with pytest.raises(InputError):
             DrivingStyle(**fallbacks)  # a fallback has none of its own

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -95,11 +96,9 @@ class MPCPolicy:
         if not self.queue:
             robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: robot, human
             clock = time.perf_counter()
-            style = self.plan_style(robot_first, self.next_fixed)
             costs = self.plans[-1].window_costs if self.plans else None
-            decision = self.check_window(robot_first, self.next_fixed, style.kinematics, costs)
-            if decision is not None:
-                self.next_fixed, style = decision.chosen, self.plan_style(robot_first, decision.chosen)
+            self.next_fixed, style = self.check_window(robot_first, self.next_fixed,
+                                                       self.plan_style(robot_first, self.next_fixed), costs)
             plan = self.planner.plan(robot_first, self.next_fixed, self.cost, budget=self.budget, deadline=self.deadline,
                                      style=style)
             self.latencies.append(time.perf_counter() - clock)
@@ -109,34 +108,31 @@ class MPCPolicy:
             self.queue = list(plan.robot[:STEPS_PER_WINDOW])
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
 
-    def check_window(self, history: np.ndarray, proposed: int, kinematics, window_costs: np.ndarray | None
-                     ) -> SafetyDecision | None:
-        """The safety layer's decision (:func:`~.safety.safe_action`) on the window about to be
-        executed, the ``proposed`` action of ``kinematics`` (:class:`~.candidates.Kinematics`), from
-        both cars' states ``history [t+1, 2, 6]`` (robot, human), preferring others by
-        ``window_costs [N_ACTIONS]`` (None: by closeness); None when the style has no safety layer.
-        A decision that brakes as the ``safety_fallback`` does plans in it from then on; every
-        changed window is logged in :attr:`safety_log`."""
+    def check_window(self, history: np.ndarray, proposed: int, style: DrivingStyle, window_costs: np.ndarray | None
+                     ) -> tuple[int, DrivingStyle]:
+        """The window about to be executed and the style to plan it in: the ``proposed`` action in
+        ``style`` where the style has no safety layer, else the safety layer's decision
+        (:func:`~.safety.safe_action`) from both cars' states ``history [t+1, 2, 6]`` (robot,
+        human), preferring actions by ``window_costs [N_ACTIONS]`` (None: by closeness), planned in
+        the ``safety_fallback`` where it brakes as that style does. Every changed window is logged
+        in :attr:`safety_log`."""
         own = self.planner.style
         if not own.safety_layer:
-            return None
+            return proposed, style
         safety = own.safety_fallback.kinematics if own.safety_fallback is not None else None
-        decision = safe_action(history[-1, 0], history[-1, 1], proposed, kinematics, window_costs, safety)
+        decision = safe_action(history[-1, 0], history[-1, 1], proposed, style.kinematics, window_costs, safety)
         if decision.overridden:
             self.safety_log.append((len(history) - 1, decision))
-        if decision.kinematics is not kinematics and self.fallen_back is None:
-            self.fallen_back = own.safety_fallback
-        return decision
+        return decision.chosen, style if decision.kinematics is style.kinematics else own.safety_fallback
 
     def plan_style(self, history: np.ndarray, first_action: int) -> DrivingStyle:
         """The driving style of the plan from both cars' states ``history [t+1, 2, 6]`` (robot,
         human) with window 0 fixed to ``first_action``: the planner's, or a fallback from the first
         plan that needs it to the end of the episode (:meth:`~.styles.DrivingStyle.fallback_for`;
-        :attr:`fallen_back`), its ``safety_fallback`` until a plan needs its ``fallback``."""
+        :attr:`fallen_back`)."""
         own = self.planner.style
-        if self.fallen_back is not own.fallback:  # once on the fallback, to the end
-            needed = own.fallback_for(history, first_action, getattr(self.cost, "goal_y", None))
-            self.fallen_back = self.fallen_back if needed is None else needed
+        if self.fallen_back is None:  # once on the fallback, to the end
+            self.fallen_back = own.fallback_for(history, first_action, getattr(self.cost, "goal_y", None))
         return self.fallen_back or own
 
 
@@ -198,13 +194,14 @@ class NonBlockingMPCPolicy(MPCPolicy):
                 self.upcoming, self.kinematics = [int(a) for a in plan.actions[1:]], plan.style.kinematics
             self.window = self.upcoming.pop(0) if self.upcoming else Action.of(0.0, Action(self.window).lane).index
             robot_first = history[0, [self.me, 1 - self.me]].swapaxes(0, 1)  # [t+1, 2, 6]: a copy
-            decision = self.check_window(robot_first, self.window, self.kinematics,
-                                         plan.window_costs if plan is not None else None)
-            if decision is not None and decision.overridden:
-                self.window, self.kinematics, self.upcoming = decision.chosen, decision.kinematics, []
+            executing = replace(self.plan_style(robot_first, self.window), kinematics=self.kinematics)
+            window, style = self.check_window(robot_first, self.window, executing,
+                                              plan.window_costs if plan is not None else None)
+            if (window, style.kinematics) != (self.window, self.kinematics):  # the safety layer changed it
+                self.window, self.kinematics, self.upcoming = window, style.kinematics, []
             self.queue = list(rollout(robot_first[-1, 0], np.array([[self.window]]), self.kinematics)[0])
             if self._pending is None:
-                style = self.plan_style(robot_first, self.window)
+                style = self.plan_style(robot_first, self.window) if style is executing else style
                 self._pending = (t, self._executor.submit(self._plan, robot_first, self.window, style))
         return self.queue.pop(0)[None, ACCELERATION_COLUMNS]
 

@@ -6,7 +6,7 @@ when, after it, one response of the robot keeps it clear of the human over :data
 whatever the human plausibly does meanwhile:
 
 * the robot's responses (from the end of the window, steering on to the window's lane): hold its
-  speed, or brake as hard as it can (:data:`RESPONSES`);
+  speed, brake as hard as it can, or accelerate as hard as it can (:data:`RESPONSES`);
 * the human's plausible motions (from now, :func:`plausible_human_paths`): longitudinally, hold its
   present acceleration for the response time and then its speed, or brake at
   :data:`HUMAN_BRAKING` (or harder, if it brakes harder now) to a stop; laterally, continue its
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..scenario import COLLISION_DX, COLLISION_DY, DT, LANE_CENTRE_Y, LANES, lane_of
+from ..scenario import COLLISION_DX, COLLISION_DY, DT, LANE_CENTRE_Y, LANES, SPEED_ALERT, lane_of
 from ..dynamics import robot_longitudinal
 from .candidates import N_ACTIONS, STEPS_PER_WINDOW, Kinematics, acceleration_indices, applied_accelerations, rollout
 
@@ -47,8 +47,10 @@ CLEAR_X = COLLISION_DX + 1.0
 CLEAR_Y = COLLISION_DY + 0.2
 """Sideways distance (m, centre to centre) at which the cars are clear: the collision rule's
 1.8 m and 0.2 m."""
-RESPONSES = ("hold speed", "brake")
-"""The robot's responses after the checked window, in :func:`robot_paths`' order."""
+RESPONSES = ("hold speed", "brake", "accelerate")
+"""The robot's responses after the checked window, in :func:`robot_paths`' order (accelerating up
+to the study's speed alert, :data:`~trafficweaving.scenario.SPEED_ALERT`: away from a faster car
+closing from behind)."""
 
 
 @dataclass(frozen=True)
@@ -96,7 +98,8 @@ def robot_paths(robot: np.ndarray, kinematics: Kinematics, braking: Kinematics) 
     (:data:`CHECK_HORIZON`) from its present state ``robot [6]``: each action of ``kinematics``
     for one window (as the window is executed), then each response of :data:`RESPONSES`, steering
     on to the window's lane as ``kinematics`` steers from the window's end (one manoeuvre) and
-    moving lengthwise as ``braking`` does (holding the speed, or its hardest braking)."""
+    moving lengthwise as ``braking`` does (holding the speed, its hardest braking or its hardest
+    acceleration)."""
     first = rollout(robot, np.arange(N_ACTIONS)[:, None], kinematics)  # [A, 3, 6]
     end = first[:, -1]
     after = round(CHECK_HORIZON / DT) - STEPS_PER_WINDOW
@@ -104,19 +107,20 @@ def robot_paths(robot: np.ndarray, kinematics: Kinematics, braking: Kinematics) 
     lateral = kinematics.steer(end[:, [1, 3, 5]], targets, DT * np.arange(1, after + 1))  # [A, after, 3]
     paths = np.empty((N_ACTIONS, len(RESPONSES), STEPS_PER_WINDOW + after, 6))
     paths[:, :, :STEPS_PER_WINDOW] = first[:, None]
-    for r, target in enumerate((0.0, -braking.hardest_braking)):
-        acc = _stopping(end[:, 2], applied_accelerations(end[:, 4], np.full((N_ACTIONS, after), target), braking.jerk))
+    for r, target in enumerate((0.0, -braking.hardest_braking, max(braking.accelerations))):
+        acc = _within_speeds(end[:, 2], applied_accelerations(end[:, 4], np.full((N_ACTIONS, after), target), braking.jerk))
         x, xd = robot_longitudinal(end[:, 0], end[:, 2], acc)
         paths[:, r, STEPS_PER_WINDOW:] = np.stack([x, lateral[..., 0], xd, lateral[..., 1], acc, lateral[..., 2]], -1)
     return paths
 
 
-def _stopping(speed: np.ndarray, accelerations: np.ndarray) -> np.ndarray:
-    """``accelerations [C, steps]`` (m/s²) applied from ``speed [C]`` (m/s), raised where the
-    robot's Euler-integrated speed would drop below 0: it stops, it does not reverse."""
-    out, v = np.array(accelerations, dtype=float), np.maximum(speed, 0.0)
+def _within_speeds(speed: np.ndarray, accelerations: np.ndarray) -> np.ndarray:
+    """``accelerations [C, steps]`` (m/s²) applied from ``speed [C]`` (m/s), cut where the robot's
+    Euler-integrated speed would leave 0..``SPEED_ALERT``: it stops rather than reverses, and does
+    not speed up past the study's speed alert."""
+    out, v = np.array(accelerations, dtype=float), np.clip(speed, 0.0, SPEED_ALERT)
     for k in range(out.shape[1]):
-        out[:, k] = np.maximum(out[:, k], -v / DT)
+        out[:, k] = np.clip(out[:, k], -v / DT, np.maximum(SPEED_ALERT - v, 0.0) / DT)
         v = v + DT * out[:, k]
     return out
 

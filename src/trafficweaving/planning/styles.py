@@ -3,7 +3,7 @@
 A :class:`DrivingStyle` says how the candidates move the robot (their
 :class:`~.candidates.Kinematics`), how a candidate's sampled futures judge it (``risk``), which
 rules add to its cost (:func:`rule_costs`: turning back, setting out beside the human, the
-stand-off exit, progress in the goal lane, following) and which style it falls back on
+stand-off exit, progress in the goal lane) and which style it falls back on
 (:meth:`DrivingStyle.fallback_for`). :data:`STYLES` holds the planning robots' styles by their
 ``--robot`` names; every rule is off in the paper's. Each style, rule and constant, with the reason
 for its value: docs/planner.md, Driving styles.
@@ -16,9 +16,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import InputError
-from ..scenario import (CAR_WIDTH, COLLISION_DX, COLLISION_DY, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANES,
+from ..scenario import (CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANES,
                         REPLAN_STEPS, lane_of)
-from .candidates import KINEMATICS, STEPS_PER_WINDOW, Action, Candidates, Kinematics, acceleration_indices
+from .candidates import KINEMATICS, Action, Candidates, Kinematics, acceleration_indices
 
 TURN_BACK_COST = 300.0
 """The decisive styles' cost of turning back from a lane change (cost units of
@@ -38,9 +38,6 @@ SETTLED_SPEED = 0.3
 SET_OUT_COST = 100_000.0
 """Cost of setting out with the human closer than a style's ``set_out_gap``: more than a sampled
 future's collision costs can add up to (about 66,000), so it acts as a rule."""
-FOLLOW_COST = 100_000.0
-"""Cost per metre by which a candidate would come short of stopping behind the human
-(:func:`stopping_shortfall`): a rule, as :data:`SET_OUT_COST`."""
 STANDOFF_EXIT_COST = 2000.0
 """The ``planner`` style's cost of a window 1 that does not take the way out of a stand-off: about
 what one colliding future in 32 adds to a candidate's mean, so a risk the futures show still wins."""
@@ -65,10 +62,7 @@ speed): to the end of window 1, by when the next plans have seen what it did ins
 PROGRESS_COST = 500.0
 """The ``planner`` style's cost per m/s by which a candidate ends its horizon slower than
 :data:`YIELD_SPEED_FLOOR` while the robot is in its goal lane and slower than that: more than
-staying behind a slower human saves, less than a colliding future or the following rule."""
-FOLLOW_LATERAL = COLLISION_DY + 0.5
-"""How close sideways (m, centre to centre) the human is in the robot's way
-(:func:`stopping_shortfall`): the collision rule's 1.8 m and half a metre for its sideways motion."""
+staying behind a slower human saves, less than a colliding future."""
 STANDOFF_WITHIN = 3.0
 """How long (s) before the cutoff a ``planner`` robot that has not set out falls back on the
 decisive style in a stand-off that would still hold it :data:`FALLBACK_WITHIN` s before the cutoff."""
@@ -86,12 +80,12 @@ class DrivingStyle:
     from the other lane's centre. ``risk``: the share α of the worst sampled futures that judge a
     candidate (CVaR_α; 1: the mean). ``set_out_gap`` (m): setting out for the goal lane in window 1
     while the human would be closer than this lengthwise costs :data:`SET_OUT_COST`, checked at
-    :attr:`set_out_times` up to ``set_out_until`` s. ``follow_braking`` (m/s²): the human's braking
-    the following rule (:func:`stopping_shortfall`) expects. ``standoff_exit_cost``: cost of a
+    :attr:`set_out_times` up to ``set_out_until`` s. ``standoff_exit_cost``: cost of a
     window 1 that does not take the way out of a stand-off (:meth:`way_out`). ``progress_cost``:
     cost per m/s by which a candidate ends slower than :data:`YIELD_SPEED_FLOOR` in the goal lane.
-    ``fallback``, ``safety_fallback``: the styles it falls back on (:meth:`fallback_for`), within
-    ``fallback_within`` s of the cutoff, or ``standoff_within`` s in a stand-off.
+    ``fallback``: the style it falls back on (:meth:`fallback_for`), within ``fallback_within`` s
+    of the cutoff, or ``standoff_within`` s in a stand-off; ``safety_fallback``: the style a window
+    the safety layer brakes in harder than ``kinematics`` can is planned in (:mod:`.safety`).
     ``safety_layer``: every window is checked before it is executed (:mod:`.safety`). All rules
     and the safety layer off are the paper's planner."""
 
@@ -105,24 +99,23 @@ class DrivingStyle:
     safety_fallback: DrivingStyle | None = None
     fallback_within: float = 0.0
     standoff_within: float = 0.0
-    follow_braking: float = 0.0
     standoff_exit_cost: float = 0.0
     progress_cost: float = 0.0
     safety_layer: bool = False
 
     def __post_init__(self):
         non_negative = (self.turn_back_cost, self.commit_offset, self.set_out_gap, self.fallback_within,
-                        self.standoff_within, self.follow_braking, self.standoff_exit_cost, self.progress_cost)
+                        self.standoff_within, self.standoff_exit_cost, self.progress_cost)
         if (not all(v >= 0 and np.isfinite(v) for v in non_negative) or not 0 < self.risk <= 1
                 or not SET_OUT_FROM < self.set_out_until < np.inf
                 or not all(s is None or isinstance(s, DrivingStyle) and s.fallback is None and s.safety_fallback is None
                            for s in (self.fallback, self.safety_fallback))):
             raise InputError(f"a driving style needs turn_back_cost, commit_offset, set_out_gap, fallback_within, "
-                             f"standoff_within, follow_braking, standoff_exit_cost and progress_cost finite and >= 0, "
+                             f"standoff_within, standoff_exit_cost and progress_cost finite and >= 0, "
                              f"0 < risk <= 1, set_out_until finite and > {SET_OUT_FROM} and fallbacks that are None or "
                              f"DrivingStyles without fallbacks of their own, got {self.turn_back_cost}, "
                              f"{self.commit_offset}, {self.set_out_gap}, {self.fallback_within}, {self.standoff_within}, "
-                             f"{self.follow_braking}, {self.standoff_exit_cost}, {self.progress_cost}, {self.risk}, "
+                             f"{self.standoff_exit_cost}, {self.progress_cost}, {self.risk}, "
                              f"{self.set_out_until}, {self.fallback!r}, {self.safety_fallback!r}")
 
     def blocks_set_out(self, robot: np.ndarray, human: np.ndarray, after: float = 0.0) -> bool:
@@ -159,19 +152,9 @@ class DrivingStyle:
         """The style a plan from both cars' states ``history [t+1, 2, 6]`` (robot, human; the
         present last), window 0 executing ``first_action``, towards the lane centre ``goal_y`` (m;
         None: no goal lane) falls back on, if any: the ``fallback`` where the robot, settled in the
-        lane it has not left, is short of time (:meth:`_short_of_time`); else the
-        ``safety_fallback`` (without one, the ``fallback``) where the human ahead in its way (within
-        :data:`FOLLOW_LATERAL` m sideways of the robot or of window 0's lane centre) brakes harder
-        than this style's ``kinematics`` can. None otherwise."""
-        if self.fallback is None:
-            return None
-        robot, human = history[-1]
-        if self._short_of_time(history, first_action, goal_y):
+        lane it has not left, is short of time (:meth:`_short_of_time`); None otherwise."""
+        if self.fallback is not None and self._short_of_time(history, first_action, goal_y):
             return self.fallback
-        lateral_gap = min(abs(human[1] - robot[1]), abs(human[1] - LANE_CENTRE_Y[Action(first_action).lane]))
-        in_way_ahead = human[0] > robot[0] and lateral_gap < FOLLOW_LATERAL
-        if in_way_ahead and -human[4] > self.kinematics.hardest_braking:
-            return self.safety_fallback or self.fallback
         return None
 
     def _short_of_time(self, history: np.ndarray, first_action: int, goal_y: float | None) -> bool:
@@ -222,17 +205,15 @@ class DrivingStyle:
         return np.linspace(SET_OUT_FROM, self.set_out_until, 15)
 
 
-_DECISIVE = DrivingStyle(KINEMATICS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP,
-                         follow_braking=KINEMATICS["settled"].hardest_braking, safety_layer=True)
+_DECISIVE = DrivingStyle(KINEMATICS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP, safety_layer=True)
 _COMFORT = DrivingStyle(KINEMATICS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP,
-                        set_out_until=2.5, follow_braking=KINEMATICS["comfort"].hardest_braking, safety_layer=True)
+                        set_out_until=2.5, safety_layer=True)
 _COMFORT_FIRST_RULES = {"standoff_exit_cost": STANDOFF_EXIT_COST, "progress_cost": PROGRESS_COST}
 """What the ``planner`` style and both its fallbacks add to their kinematics' styles: the stand-off
 exit, and getting going again in the goal lane."""
 STYLES = {
     "planner": replace(_COMFORT, **_COMFORT_FIRST_RULES, fallback=replace(_DECISIVE, **_COMFORT_FIRST_RULES),
-                       safety_fallback=replace(_COMFORT, kinematics=KINEMATICS["safety"], **_COMFORT_FIRST_RULES,
-                                               follow_braking=KINEMATICS["safety"].hardest_braking),
+                       safety_fallback=replace(_COMFORT, kinematics=KINEMATICS["safety"], **_COMFORT_FIRST_RULES),
                        fallback_within=FALLBACK_WITHIN, standoff_within=STANDOFF_WITHIN),
     "planner-decisive": _DECISIVE,
     "planner-paper": DrivingStyle(),
@@ -241,20 +222,20 @@ STYLES = {
 }
 """The planning robots' driving styles by their ``--robot`` names (docs/planner.md, Driving
 styles): ``planner`` comfort first (comfortable, falling back on decisive when time runs short or
-in a stand-off, on decisive braking with comfortable steering for safety; making room beside the
-human), ``planner-decisive``, ``planner-paper`` (the paper's exactly), ``planner-comfort``
+in a stand-off, braking as decisively with comfortable steering where its safety layer needs to;
+making room beside the human), ``planner-decisive``, ``planner-paper`` (the paper's exactly), ``planner-comfort``
 (decisive within nuPlan's comfort limits) and ``planner-cautious`` (decisive, judged by CVaR_0.2)."""
 
 
 def rule_costs(style: DrivingStyle, candidates: Candidates, history: np.ndarray, goal_y: float | None) -> np.ndarray:
     """``style``'s rule costs of each candidate ``[C]`` from both cars' states ``history [t+1, 2,
-    6]`` (robot, human) towards the lane centre ``goal_y`` (m; None: no goal lane, only the
-    following rule): turning back (:func:`turn_backs`, once the robot is ``commit_offset`` from the
+    6]`` (robot, human) towards the lane centre ``goal_y`` (m; None: no goal lane, no rule):
+    turning back (:func:`turn_backs`, once the robot is ``commit_offset`` from the
     other lane's centre), setting out beside the human (:func:`set_outs`,
     :meth:`~DrivingStyle.blocks_set_out_along`), not taking the way out of a stand-off before it
-    has set out (:meth:`~DrivingStyle.way_out`), ending the horizon below
-    :data:`YIELD_SPEED_FLOOR` in the goal lane, and coming short of stopping behind the human
-    (:func:`stopping_shortfall`)."""
+    has set out (:meth:`~DrivingStyle.way_out`) and ending the horizon below
+    :data:`YIELD_SPEED_FLOOR` in the goal lane. Safety (following, braking for the human) is the
+    safety layer's (:mod:`.safety`), which checks every window before it is executed."""
     rules = np.zeros(len(candidates))
     if goal_y is not None:
         goal = str(lane_of(np.array([goal_y]))[0])
@@ -271,9 +252,6 @@ def rule_costs(style: DrivingStyle, candidates: Candidates, history: np.ndarray,
             rules += style.standoff_exit_cost * (acceleration_indices(candidates.actions[:, 1]) != way)
         if style.progress_cost and lane_of(robot[1:2])[0] == goal and robot[2] < YIELD_SPEED_FLOOR:
             rules += style.progress_cost * np.maximum(YIELD_SPEED_FLOOR - candidates.states[:, -1, 2], 0.0)
-    if style.follow_braking:
-        rules += FOLLOW_COST * stopping_shortfall(history[-1, 0], candidates.states, history[-1, 1],
-                                                  style.follow_braking, style.kinematics)
     return rules
 
 
@@ -366,55 +344,3 @@ def _uniform_time_to_gain(distance: float, speed: float, acceleration: float) ->
     if acceleration > 0:
         return (np.sqrt(discriminant) - speed) / acceleration
     return (speed - np.sqrt(discriminant)) / -acceleration
-
-
-def stopping_shortfall(robot: np.ndarray, states: np.ndarray, human: np.ndarray, human_braking: float,
-                       kinematics: Kinematics) -> np.ndarray:
-    """Per candidate, how far (m) the robot would come short of stopping behind the human ``[C]``
-    (0: it can stop), from the cars' present states ``robot [6]``, ``human [6]`` and the
-    candidates' robot states ``states [C, 15, 6]``. The human brakes from now at ``human_braking``
-    m/s² (or as hard as it brakes now, if harder) to a stop, keeping its lateral position; the
-    robot follows the candidate to the end of window 1 (0.6 s: a plan made next can first brake
-    after it) and then brakes at ``kinematics``'s hardest (reached at its jerk limit: a delay of half
-    the ramp) to a stop, moving sideways as the candidate does. Short: the least bumper gap
-    (``|Δx| - COLLISION_DX``), negated where below 0, while the human is ahead now and the robot
-    within :data:`FOLLOW_LATERAL` of it sideways (at the horizon's steps, and after the horizon if
-    the robot still is at its end): a candidate may also steer out of the human's way. An
-    RSS-style check (Shalev-Shwartz et al. 2017) with the replanning period as the response time."""
-    if human[0] <= robot[0]:
-        return np.zeros(len(states))
-    end = 2 * STEPS_PER_WINDOW  # steps to the end of window 1
-    t_end = end * DT
-    b_h = max(human_braking, -human[4], 1e-6)
-    b_r = kinematics.hardest_braking
-    v_h = max(human[2], 0.0)
-
-    def human_x(t):
-        moving = np.minimum(t, v_h / b_h)
-        return human[0] + v_h * moving - 0.5 * b_h * moving ** 2
-
-    in_way = np.abs(states[..., 1] - human[1]) < FOLLOW_LATERAL  # [C, 15]
-    steps = DT * np.arange(1, end + 1)
-    gaps_before = np.where(in_way[:, :end], human_x(steps) - states[:, :end, 0] - COLLISION_DX, np.inf)
-
-    x, v, a = states[:, end - 1, 0], np.maximum(states[:, end - 1, 2], 0.0), states[:, end - 1, 4]
-    delay = np.zeros_like(v) if kinematics.jerk is None else np.maximum(a + b_r, 0.0) / (2 * kinematics.jerk)
-
-    def robot_x(t):
-        s = t - t_end
-        braking = np.clip(s - delay, 0.0, v / b_r)
-        return x + v * np.minimum(s, delay) + v * braking - 0.5 * b_r * braking ** 2
-
-    # braking: at each step of the horizon where the candidate keeps the robot in the human's way, and after the
-    # horizon, if it still does, at the least gap: an end of a piece of the speeds or where they are equal
-    braking_steps = DT * np.arange(end, HORIZON + 1)[:, None]  # [10, 1] s
-    gaps_braking = np.where(in_way[:, end - 1:].T, human_x(braking_steps) - robot_x(braking_steps), np.inf).min(0)
-    t_horizon = HORIZON * DT
-    with np.errstate(divide="ignore", invalid="ignore"):
-        times = np.stack([t_end + delay, np.full_like(v, v_h / b_h), t_end + delay + v / b_r, (v_h - v) / b_h,
-                          (v - v_h + b_r * (t_end + delay)) / (b_r - b_h)])
-    times = np.maximum(np.nan_to_num(times, nan=0.0, posinf=0.0, neginf=0.0), t_horizon)  # [5, C]
-    gaps_beyond = np.where(in_way[:, -1], (human_x(times) - robot_x(times)).min(0), np.inf)
-    gaps_after = np.minimum(gaps_braking, gaps_beyond) - COLLISION_DX
-    return np.maximum(-np.minimum(gaps_before.min(1), gaps_after), 0.0)
-
