@@ -84,13 +84,16 @@ def test_a_faster_car_closing_from_behind_in_the_goal_lane_leaves_room_to_set_ou
 def test_plausible_human_paths_brake_to_a_stop_and_stay_between_the_lanes():
     human = state(-50, LEFT, v=10.0, vy=-2.5, ay=-1.0)
     paths = plausible_human_paths(human, 42)
-    holding, braking = paths[0], paths[2]
+    holding, braking = paths[0], paths[4]
     assert np.all(np.diff(braking[:, 0]) >= -1e-12)  # never backwards
     assert braking[-1, 0] == pytest.approx(-50 + 10.0 ** 2 / (2 * HUMAN_BRAKING))
     assert holding[-1, 0] > braking[-1, 0]
     assert paths[..., 1].min() >= RIGHT - 1e-12 and paths[..., 1].max() <= LEFT + 1e-12
     assert paths[0, -1, 1] == pytest.approx(RIGHT)  # it completes the lane change it started
     assert np.all(paths[1, :, 1] == LEFT)  # or holds its lateral position
+    fast = plausible_human_paths(state(-50, LEFT, v=36.0, a=2.0), 42)[2]  # keeps accelerating, up to the alert
+    np.testing.assert_allclose(np.diff(fast[10:, 0]), 38.0 * DT)
+    assert np.diff(fast[:9, 0]).max() < 38.0 * DT
 
 
 def _clear_of_every_plausible_human(robot, human, acceleration, steps=42):

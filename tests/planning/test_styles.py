@@ -225,19 +225,20 @@ def test_the_way_out_goes_ahead_once_the_human_has_braked_along():
     style = first.fallback
     keep = Action.of(0.0, "right").index
     braking = [0.0] * 5 + [-4.0] * 10 + [0.0]
+    hardest, ahead = style.kinematics.hardest_braking, max(style.kinematics.accelerations)
     for human, along in ((braking, True), ([0.0] * 16, False), ([0.0] * 5 + [-2.0] * 10 + [0.0], False)):
         history = _side_by_side(braking, human, dx=2.0 * along - 1.0)  # 1 m behind or ahead: no way ahead before
         assert brakes_along(history) == along
-        assert style.kinematics.accelerations[standoff_exit(*history[-1], style.kinematics, SET_OUT_GAP)] == -6.0
+        assert style.kinematics.accelerations[standoff_exit(*history[-1], style.kinematics, SET_OUT_GAP)] == -hardest
         assert style.human_yields(history) == along
-        assert style.kinematics.accelerations[style.way_out(history)] == (4.0 if along else -6.0)
+        assert style.kinematics.accelerations[style.way_out(history)] == (ahead if along else -hardest)
         assert first.fallback_for(history, keep, LEFT) is (style if along else None)
     harder = _side_by_side(braking, [0.0] * 5 + [-8.0] * 10 + [0.0], dx=1.0)  # the human braking twice as hard
     assert not brakes_along(harder) and not style.human_yields(harder) and first.fallback_for(harder, keep, LEFT) is None
     assert style.way_out(harder) == standoff_exit(*harder[-1], style.kinematics, SET_OUT_GAP)  # ahead opens by itself
     later = _side_by_side(braking + [0.0] * 20, braking + [0.0] * 20, dx=1.0)
     assert not brakes_along(later) and style.human_yields(later) and first.fallback_for(later, keep, LEFT) is style
-    assert style.kinematics.accelerations[style.way_out(later)] == 4.0
+    assert style.kinematics.accelerations[style.way_out(later)] == ahead
     far = _side_by_side(braking, braking, dx=-30.0)
     assert brakes_along(far) and not style.human_yields(far) and first.fallback_for(far, keep, LEFT) is None
     assert not brakes_along(_side_by_side([0.0] * 3 + [-4.0] * 3, [0.0] * 3 + [-4.0] * 3))  # too short a history
@@ -276,7 +277,9 @@ def test_the_standoff_exit_makes_room_beside_the_human():
 
 def test_the_set_out_rule_watches_the_gap_while_each_styles_lane_change_crosses_the_divider():
     """With half a second or more to spare either side, for the lane change from rest set out in
-    window 1 (0.3 s from now); the styles' fallbacks too."""
+    window 1 (0.3 s from now); the styles' fallbacks too, but for comfort first's, which under time
+    pressure watches only until the robot's body has cleared the divider (the safety layer guards
+    the rest)."""
     times = np.arange(1, 61) * DT
     for name, style in [(name, style) for name, top in STYLES.items()
                        for style in (top, top.fallback, top.safety_fallback) if style is not None]:
@@ -284,7 +287,8 @@ def test_the_set_out_rule_watches_the_gap_while_each_styles_lane_change_crosses_
             y = style.kinematics.steer(np.array([RIGHT, 0.0, 0.0]), np.array(LEFT), times)[:, 0]
             over = np.abs(y - LANE_DIVIDER_Y) < CAR_WIDTH / 2  # the robot's body over the divider
             first, last = 0.3 + times[over][[0, -1]]
-            assert style.set_out_times[0] <= first - 0.45 and style.set_out_times[-1] >= last + 0.45, name
+            spare_after = 0.05 if style is STYLES["planner"].fallback else 0.45
+            assert style.set_out_times[0] <= first - 0.45 and style.set_out_times[-1] >= last + spare_after, name
 
 
 @pytest.mark.slow

@@ -8,8 +8,9 @@ whatever the human plausibly does meanwhile:
 * the robot's responses (from the end of the window, steering on to the window's lane): hold its
   speed, brake as hard as it can, or accelerate as hard as it can (:data:`RESPONSES`);
 * the human's plausible motions (from now, :func:`plausible_human_paths`): longitudinally, hold its
-  present acceleration for the response time and then its speed, or brake at
-  :data:`HUMAN_BRAKING` (or harder, if it brakes harder now) to a stop; laterally, continue its
+  present acceleration for the response time and then its speed, keep its present acceleration
+  (up to the study's speed alert), or brake at :data:`HUMAN_BRAKING` (or harder, if it brakes
+  harder now) to a stop; laterally, continue its
   present lateral motion (its velocity, and its acceleration for the response time) up to the
   lane centre it is moving towards, or hold its lateral position;
 * clear: more than :data:`CLEAR_X` apart lengthwise or :data:`CLEAR_Y` sideways at every step.
@@ -74,15 +75,18 @@ class SafetyDecision:
 
 
 def plausible_human_paths(human: np.ndarray, steps: int) -> np.ndarray:
-    """The human's plausible positions ``[4, steps, 2]`` (x, y, m) at steps t+1..t+steps from its
-    present state ``human [6]``: (hold its acceleration for the response time then its speed,
-    brake at :data:`HUMAN_BRAKING` or harder to a stop) × (continue its lateral motion to the lane
-    centre it moves towards, hold its lateral position)."""
+    """The human's plausible positions ``[6, steps, 2]`` (x, y, m) at steps t+1..t+steps from its
+    present state ``human [6]``: (hold its acceleration for the response time then its speed; keep
+    its acceleration, between standstill and the study's speed alert; brake at
+    :data:`HUMAN_BRAKING` or harder to a stop) × (continue its lateral motion to the lane centre
+    it moves towards, hold its lateral position)."""
     t = DT * np.arange(1, steps + 1)
     x, y, v, vy, a, ay = human
     held = np.minimum(t, RESPONSE_TIME)
     speed_after = max(v + a * RESPONSE_TIME, 0.0)
     holding = x + v * held + 0.5 * a * held ** 2 + speed_after * (t - held)
+    speeds = np.clip(v + a * np.concatenate([[0.0], t]), 0.0, max(v, SPEED_ALERT))
+    keeping = x + np.cumsum(0.5 * DT * (speeds[:-1] + speeds[1:]))
     braking = max(HUMAN_BRAKING, -a)
     moving = np.minimum(t, max(v, 0.0) / braking)
     stopping = x + max(v, 0.0) * moving - 0.5 * braking * moving ** 2
@@ -90,7 +94,7 @@ def plausible_human_paths(human: np.ndarray, steps: int) -> np.ndarray:
     centres = np.array([LANE_CENTRE_Y[lane] for lane in LANES])
     lateral = np.clip(lateral, min(y, centres.min()), max(y, centres.max()))  # not beyond the lane centres
     holding_y = np.full(steps, y)
-    return np.stack([np.stack([px, py], -1) for px in (holding, stopping) for py in (lateral, holding_y)])
+    return np.stack([np.stack([px, py], -1) for px in (holding, keeping, stopping) for py in (lateral, holding_y)])
 
 
 def robot_paths(robot: np.ndarray, kinematics: Kinematics, braking: Kinematics) -> np.ndarray:

@@ -209,10 +209,11 @@ _DECISIVE = DrivingStyle(KINEMATICS["settled"], TURN_BACK_COST, commit_offset=CO
 _COMFORT = DrivingStyle(KINEMATICS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP,
                         set_out_until=2.5, safety_layer=True)
 _COMFORT_FIRST_RULES = {"standoff_exit_cost": STANDOFF_EXIT_COST, "progress_cost": PROGRESS_COST}
-"""What the ``planner`` style and both its fallbacks add to their kinematics' styles: the stand-off
+"""What the ``planner`` style and its fallbacks add to the comfort and decisive styles: the stand-off
 exit, and getting going again in the goal lane."""
 STYLES = {
-    "planner": replace(_COMFORT, **_COMFORT_FIRST_RULES, fallback=replace(_DECISIVE, **_COMFORT_FIRST_RULES),
+    "planner": replace(_COMFORT, **_COMFORT_FIRST_RULES,
+                       fallback=replace(_DECISIVE, kinematics=KINEMATICS["comfort"], **_COMFORT_FIRST_RULES),
                        safety_fallback=replace(_COMFORT, kinematics=KINEMATICS["safety"], **_COMFORT_FIRST_RULES),
                        fallback_within=FALLBACK_WITHIN, standoff_within=STANDOFF_WITHIN),
     "planner-decisive": _DECISIVE,
@@ -221,9 +222,10 @@ STYLES = {
     "planner-cautious": replace(_DECISIVE, risk=0.2),
 }
 """The planning robots' driving styles by their ``--robot`` names (docs/planner.md, Driving
-styles): ``planner`` comfort first (comfortable, falling back on decisive when time runs short or
-in a stand-off, braking as decisively with comfortable steering where its safety layer needs to;
-making room beside the human), ``planner-decisive``, ``planner-paper`` (the paper's exactly), ``planner-comfort``
+styles): ``planner`` comfort first (comfortable throughout: when time runs short or in a
+stand-off it falls back on the decisive style's shorter set-out check, in the comfort kinematics;
+braking as decisively, with comfortable steering, where its safety layer needs to; making room
+beside the human), ``planner-decisive``, ``planner-paper`` (the paper's exactly), ``planner-comfort``
 (decisive within nuPlan's comfort limits) and ``planner-cautious`` (decisive, judged by CVaR_0.2)."""
 
 
