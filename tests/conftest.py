@@ -14,6 +14,10 @@ from pathlib import Path
 
 import pytest
 
+# Idle OpenMP threads sleep instead of spinning (set before torch loads; the processes the tests start inherit
+# it): on cores busy with other work, torch's spinning threads make the model tests about ten times slower.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 REFERENCE = Path(os.environ.get("TRAFFICWEAVING_SHARED", Path(__file__).resolve().parents[2] / "shared")) / "reference"
 
 
@@ -47,6 +51,17 @@ def authors_model_dir() -> Path:
     if not ((folder / "weights.npz").is_file() and (folder / "reference_outputs.npz").is_file()):
         pytest.skip(f"the authors' trained model and reference outputs are not present ({folder})")
     return folder
+
+
+@pytest.fixture(scope="session")
+def authors_evaluation(authors_model_dir, hitl_trials):
+    """The authors' model as loaded (float32) evaluated on every instance of the 30 real trials, once
+    per test session (an :class:`~trafficweaving.model.evaluate.Evaluation`; do not modify)."""
+    from trafficweaving.model.authors import load_authors_model
+    from trafficweaving.model.evaluate import evaluate
+    from trafficweaving.model.exemplars import build_exemplars
+
+    return evaluate(load_authors_model(authors_model_dir / "weights.npz"), build_exemplars(hitl_trials))
 
 
 def pytest_collection_modifyitems(items):

@@ -8,7 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from helpers_model import small_checkpoint
 from trafficweaving.cli import main
+from trafficweaving.data.trials import load_trials
 
 
 def run(capsys, *argv):
@@ -90,7 +92,8 @@ def test_evaluate_authors_model_on_the_real_trials_gives_the_papers_nll(capsys, 
     weights = authors_model_dir / "weights.npz"
     data = tmp_path / "hitl.parquet"
     run(capsys, "import", "hitl", *hitl_files, "--out", data, "--json")
-    code, out, _ = run(capsys, "evaluate", "--model", f"authors:{weights}", "--data", data, "--json")
+    code, out, _ = run(capsys, "evaluate", "--model", f"authors:{weights}", "--data", data, "--max-sampled-instances", 0,
+                       "--json")
     assert code == 0
     report = json.loads(out)
     assert report["instances"] == 963
@@ -109,7 +112,7 @@ def test_train_then_evaluate_a_checkpoint(capsys, tmp_path):
     assert code == 0
     trained = json.loads(out)
     assert trained["variant"] == "lstm" and trained["steps"] == 4 and model.is_file()
-    code, out, _ = run(capsys, "evaluate", "--model", model, "--data", data, "--json")
+    code, out, _ = run(capsys, "evaluate", "--model", model, "--data", data, "--max-sampled-instances", 0, "--json")
     report = json.loads(out)
     assert code == 0 and report["instances"] > trained["instances"]  # all trials, not just the validation split
     # a single latent value: all three estimators are the same number
@@ -171,7 +174,7 @@ def test_crossval_rejects_data_without_human_agents(capsys, tmp_path):
 def test_crossval_json_reports_folds_mean_and_reference(capsys, tmp_path):
     data, model = tmp_path / "d.parquet", tmp_path / "m.pt"
     run(capsys, "generate", "--trials", 9, "--seed", 3, "--out", data, "--json")
-    run(capsys, "train", "--data", data, "--out", model, "--steps", 2, "--variant", "cvae-hold", "--json")
+    small_checkpoint(model, load_trials(data))
     code, out, _ = run(capsys, "crossval", "--data", data, "--folds", 3, "--init", model, "--steps", 4,
                        "--validate-every", 2, "--reference", model, "--out", tmp_path / "folds", "--json")
     report = json.loads(out)
@@ -187,7 +190,7 @@ def test_fine_tuning_a_model_into_a_driver_conditioned_on_the_guess(capsys, tmp_
 
     data, model, driver = tmp_path / "d.parquet", tmp_path / "m.pt", tmp_path / "driver.pt"
     run(capsys, "generate", "--trials", 6, "--seed", 3, "--out", data, "--json")
-    run(capsys, "train", "--data", data, "--out", model, "--steps", 2, "--variant", "cvae-hold", "--json")
+    small_checkpoint(model, load_trials(data))
     code, _, _ = run(capsys, "train", "--data", data, "--init", model, "--robot-future", "guess", "--steps", 2,
                      "--out", driver, "--json")
     trained, payload = load_checkpoint(driver)
@@ -205,8 +208,8 @@ def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoin
     from trafficweaving.model.mixture import Mixture
 
     data, model, folds = tmp_path / "d.parquet", tmp_path / "m.pt", tmp_path / "folds"
-    run(capsys, "generate", "--trials", 6, "--seed", 3, "--out", data, "--json")
-    run(capsys, "train", "--data", data, "--out", model, "--steps", 2, "--variant", "cvae-hold", "--json")
+    run(capsys, "generate", "--trials", 3, "--seed", 3, "--out", data, "--json")
+    small_checkpoint(model, load_trials(data))
     run(capsys, "crossval", "--data", data, "--folds", 3, "--init", model, "--steps", 2, "--validate-every", 2,
         "--out", folds, "--json")
     code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--out", tmp_path / "c.pt",
@@ -221,12 +224,16 @@ def test_calibrate_chooses_on_out_of_fold_models_and_writes_calibrated_checkpoin
     assert calibrated.latent_temperature.item() == report["latent_temperature"] and calibrated.output_scale.tolist() == scale
     assert payload["calibration"]["nll_exact"] == report["nll_exact"]
     fold, fold_payload = load_checkpoint(tmp_path / "cfolds" / "fold_2.pt")
-    assert fold.output_scale.tolist() == scale and len(fold_payload["held_out_trials"]) == 2
-    # with a companion, the calibrated setting is then mixed with it at the weight chosen out-of-fold; scored
-    # in worker processes, the same grid (their models are private copies, not shared and overwritten)
+    assert fold.output_scale.tolist() == scale and len(fold_payload["held_out_trials"]) == 1
+    # scored in worker processes, the same rows (their models are private copies, not shared and overwritten)
+    code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--out", tmp_path / "w.pt",
+                       "--samples", 10, "--temperatures", "1", "--scales", "1,2", "--workers", 2, "--json")
+    pooled = json.loads(out)["grid"]
+    assert code == 0 and len(pooled) >= 2 and all(row in grid for row in pooled)
+    # with a companion, the calibrated setting is then mixed with it at the weight chosen out-of-fold
     code, out, _ = run(capsys, "calibrate", "--data", data, "--folds", folds, "--model", model, "--companion", model,
                        "--out", tmp_path / "mixed.pt", "--out-folds", tmp_path / "mfolds", "--samples", 10,
-                       "--temperatures", "1,2", "--scales", "1,2", "--workers", 2, "--json")
+                       "--temperatures", "1,2", "--scales", "1,2", "--json")
     mixed = json.loads(out)
     extra = mixed["grid"][len(grid):]
     assert code == 0 and mixed["grid"][:len(grid)] == grid and mixed["companion"] == str(model)
@@ -255,7 +262,7 @@ def test_mix_writes_a_mixture_with_a_companion_conditioned_like_the_model(capsys
 
     data, companion, model, folds = tmp_path / "d.parquet", tmp_path / "c.pt", tmp_path / "m.pt", tmp_path / "folds"
     run(capsys, "generate", "--trials", 9, "--seed", 3, "--out", data, "--json")
-    run(capsys, "train", "--data", data, "--out", companion, "--steps", 2, "--variant", "cvae", "--json")  # recorded futures
+    small_checkpoint(companion, load_trials(data), "cvae")  # recorded futures
     run(capsys, "train", "--data", data, "--init", companion, "--robot-future", "guess", "--out", model, "--steps", 2, "--json")
     run(capsys, "crossval", "--data", data, "--folds", 3, "--init", companion, "--robot-future", "guess", "--steps", 2,
         "--validate-every", 2, "--out", folds, "--json")
@@ -305,10 +312,10 @@ def test_nested_recipe_search_chooses_candidate_and_calibration_on_inner_folds(c
     from trafficweaving.model.checkpoint import load_checkpoint
 
     data, model = tmp_path / "d.parquet", tmp_path / "m.pt"
-    run(capsys, "generate", "--trials", 6, "--seed", 3, "--out", data, "--json")
-    run(capsys, "train", "--data", data, "--out", model, "--steps", 2, "--variant", "cvae", "--json")
+    run(capsys, "generate", "--trials", 3, "--seed", 3, "--out", data, "--json")
+    small_checkpoint(model, load_trials(data))
     folders = []
-    for parts in ("all", "hold"):  # two candidate recipes: fine-tune everything, or the added hold head alone
+    for parts in ("all", "hold"):  # two candidate recipes: fine-tune everything, or the hold head alone
         folders.append(tmp_path / parts)
         code, out, _ = run(capsys, "crossval", "--data", data, "--folds", 3, "--init", model, "--variant", "cvae-hold",
                            "--train-parts", parts, "--hold-lr", 0.05, "--steps", 2, "--validate-every", 2, "--nested",
@@ -353,10 +360,10 @@ def test_default_model_is_shipped_trained_and_evaluates(capsys, tmp_path):
     assert all(f["nll_exact"] < ref for f, ref in zip(nested["folds"], cv["reference"]["folds"]))
     assert all(0.85 <= c <= 0.95 for c in nested["coverage_90"].values())
     data = tmp_path / "fresh.parquet"  # trials the shipped model never saw (another seed)
-    run(capsys, "generate", "--trials", 20, "--seed", 12345, "--out", data, "--json")
+    run(capsys, "generate", "--trials", 8, "--seed", 12345, "--out", data, "--json")
     code, out, _ = run(capsys, "evaluate", "--model", "default", "--data", data, "--json", "--max-sampled-instances", 0)
     report = json.loads(out)
-    assert code == 0 and report["variant"] == "cvae-hold" and report["instances"] > 500
+    assert code == 0 and report["variant"] == "cvae-hold" and report["instances"] > 300
     # an untrained model scores about +30 nats here; the trained one predicts simulated humans
     assert report["nll_exact"] < 0 and report["nll_exact"] <= report["nll_naive"] + 0.5
 

@@ -16,9 +16,11 @@ COMMAND = Path(sys.executable).parent / "trafficweaving"
 @pytest.mark.skipif(not COMMAND.exists(), reason="the trafficweaving console script is not installed in this environment")
 @pytest.mark.parametrize("delay_s", [0.15, 0.3, 1.0])
 def test_ctrl_c_during_start_up_prints_one_line(delay_s, tmp_path):
-    # `stats` of a missing file: cheap once started, but it imports the whole package first
+    # `stats` of a missing file: cheap once started, but it imports the whole package first; SIGINT at its
+    # default, as in a terminal, even when this test runs as a background job (started with SIGINT ignored)
     process = subprocess.Popen([str(COMMAND), "stats", str(tmp_path / "missing.parquet")], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+                               stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(delay_s)
     process.send_signal(signal.SIGINT)
     out, err = process.communicate(timeout=60)

@@ -71,11 +71,11 @@ def _self_sampled(model, exemplars: ExemplarSet, picks: np.ndarray) -> ExemplarS
 @pytest.mark.slow
 def test_coverage_on_data_sampled_from_the_model_itself_is_near_nominal(trials, model):
     exemplars = build_exemplars(trials)
-    picks = np.arange(0, len(exemplars), 2)
+    picks = np.arange(0, len(exemplars), 4)
     own = _self_sampled(model, exemplars, picks)
     metrics = sampled_metrics(model, own, np.arange(len(picks)), samples=100, ade_samples=5, levels=(0.5, 0.9))
     coverage = metrics.covered.mean(axis=0)  # [2 directions, 3 horizons, 2 levels]
-    assert len(picks) >= 300
+    assert len(picks) >= 200
     assert np.abs(coverage[..., 0] - 0.5).max() < 0.1 and np.abs(coverage[..., 1] - 0.9).max() < 0.07
     assert abs(coverage[..., 0].mean() - 0.5) < 0.05 and abs(coverage[..., 1].mean() - 0.9) < 0.04
     # the same model made overconfident (every output width halved) misses the recorded futures more often
@@ -112,6 +112,7 @@ def test_per_direction_nll_adds_up_to_the_exact_nll_for_one_uncorrelated_gaussia
 
 @pytest.mark.slow
 def test_phases_partition_the_instances_and_follow_the_lane_change(trials, model):
+    trials = trials.subset(np.arange(6))
     exemplars = build_exemplars(trials)
     metrics = evaluate_instances(model, trials, exemplars, samples=10, ade_samples=5, max_sampled=50)
     summary = metrics.summary()
@@ -133,12 +134,12 @@ def test_phases_partition_the_instances_and_follow_the_lane_change(trials, model
 @pytest.mark.slow
 def test_evaluate_json_per_instance_parquet_round_trip(capsys, tmp_path, trials):
     data, table = tmp_path / "d.parquet", tmp_path / "out" / "instances.parquet"
-    trials.subset(np.arange(6)).write_parquet(data)
+    trials.subset(np.arange(3)).write_parquet(data)
     code, out, _ = run(capsys, "evaluate", "--data", data, "--coverage-samples", 20, "--ade-samples", 10,
                        "--per-instance", table, "--json")
     assert code == 0
     report = json.loads(out)
-    old = evaluate(load_model("default"), build_exemplars(trials.subset(np.arange(6)))).summary()
+    old = evaluate(load_model("default"), build_exemplars(trials.subset(np.arange(3)))).summary()
     for key in ("instances", "nll_exact", "nll_is", "nll_naive"):  # unchanged keys and meanings
         assert report[key] == pytest.approx(old[key])
     assert set(report["coverage"]) == {"x", "y"} and set(report["coverage"]["x"]) == {"0.5", "1.0", "1.5"}
@@ -152,7 +153,7 @@ def test_evaluate_json_per_instance_parquet_round_trip(capsys, tmp_path, trials)
     assert np.mean(frame["nll_exact_y"]) == pytest.approx(report["nll_exact_by_direction"]["y"])
     assert np.mean(frame["covered_x_1.5s_90"]) == pytest.approx(report["coverage"]["x"]["1.5"]["90"])
     assert np.mean(frame["min_fde_m"]) == pytest.approx(report["min_fde_m"])
-    assert set(frame["phase"]) <= set(PHASES) and set(frame["trial"]) == set(trials.trial_ids[:6].tolist())
+    assert set(frame["phase"]) <= set(PHASES) and set(frame["trial"]) == set(trials.trial_ids[:3].tolist())
     code, out, _ = run(capsys, "evaluate", "--data", data, "--coverage-samples", 20, "--ade-samples", 10)
     assert code == 0 and "minADE" in out and "coverage" in out and "before" in out
 

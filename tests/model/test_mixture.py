@@ -19,14 +19,15 @@ from trafficweaving.model.predictor import HumanPredictor
 from trafficweaving.model.sampler import BatchedRollout, MixtureRollout
 from trafficweaving.model.train import initial_model
 
-from helpers_model import synthetic_trials
+from helpers_model import SMALL_UNITS, synthetic_trials
 
 
 @pytest.fixture(scope="module")
 def components() -> tuple[CVAE, CVAE]:
-    """Two different untrained models, a hold-aware one and a paper one, in float64."""
+    """Two different untrained small models, a hold-aware one and a paper one, in float64."""
     torch.manual_seed(0)
-    return CVAE(CVAEConfig.variant("cvae-hold")).double().eval(), CVAE(CVAEConfig.variant("cvae")).double().eval()
+    return (CVAE(CVAEConfig.variant("cvae-hold", **SMALL_UNITS)).double().eval(),
+            CVAE(CVAEConfig.variant("cvae", **SMALL_UNITS)).double().eval())
 
 
 @pytest.fixture(scope="module")

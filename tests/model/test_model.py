@@ -226,14 +226,16 @@ def test_reference_instances_are_ours(authors):
 @pytest.mark.slow
 @pytest.mark.parametrize("device", DEVICES)
 def test_authors_latent_prior_and_likelihoods_match_tensorflow(authors, device):
+    """Every 4th instance (from every trial): test_authors_exact_nll_is_the_papers checks all of them
+    against TensorFlow's NLL, which these two likelihoods make up."""
     model, exemplars, _, reference = authors
     model = model.to(device)
     data = exemplars.standardised(model)
     with torch.no_grad():
-        log_p_z, log_p_y = model.log_likelihoods(data.batch(torch.arange(len(data), device=device)))
+        log_p_z, log_p_y = model.log_likelihoods(data.batch(torch.arange(0, len(data), 4, device=device)))
     model.cpu()
-    np.testing.assert_allclose(log_p_z.cpu().numpy(), reference["log_p_z"], atol=1e-4, rtol=0)
-    np.testing.assert_allclose(log_p_y.cpu().numpy(), reference["log_p_y_given_z_std"], atol=1e-4, rtol=0)
+    np.testing.assert_allclose(log_p_z.cpu().numpy(), reference["log_p_z"][::4], atol=1e-4, rtol=0)
+    np.testing.assert_allclose(log_p_y.cpu().numpy(), reference["log_p_y_given_z_std"][::4], atol=1e-4, rtol=0)
 
 
 def test_authors_gmm_parameters_match_tensorflow(authors):
@@ -259,13 +261,9 @@ def test_authors_exact_nll_is_the_papers(authors):
 
 
 @pytest.mark.slow
-def test_authors_model_in_float32_agrees_too(authors_model_dir, hitl_trials):
-    from trafficweaving.model.authors import load_authors_model
-
-    model = load_authors_model(authors_model_dir / "weights.npz")
+def test_authors_model_in_float32_agrees_too(authors_model_dir, authors_evaluation):
     reference = np.load(authors_model_dir / "reference_outputs.npz")
-    result = evaluate(model, build_exemplars(hitl_trials))
-    np.testing.assert_allclose(result.nll_exact, reference["nll"], atol=2e-3)
+    np.testing.assert_allclose(authors_evaluation.nll_exact, reference["nll"], atol=2e-3)
 
 
 def test_authors_import_rejects_bad_files(tmp_path):

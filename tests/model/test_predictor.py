@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from helpers_model import SMALL_UNITS
 from trafficweaving.errors import InputError
 from trafficweaving.model.cvae import CVAE, CVAEConfig
 from trafficweaving.model.fused_decoder import decode_step
@@ -64,7 +65,7 @@ def test_common_random_numbers_give_every_candidate_each_samples_draws(variant):
     identical futures, a candidate's futures do not depend on which others are sampled with it, and
     they have the distribution of independent draws (mean and spread of 4000 samples)."""
     torch.manual_seed(0)
-    model = CVAE(CVAEConfig.variant(variant))
+    model = CVAE(CVAEConfig.variant(variant, **SMALL_UNITS))
     history = example_history()
     candidates = robot_candidates(history[-1, 0], 0).states
     futures = np.concatenate([candidates[:1], candidates[:1], candidates[-1:]])  # 0 and 1 the same

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers_model import synthetic_trials
+from helpers_model import small_checkpoint, synthetic_trials
 from trafficweaving.errors import InputError
 from trafficweaving.model.checkpoint import load_checkpoint, save_checkpoint, write_payload
 from trafficweaving.model.cvae import CVAE, CVAEConfig
@@ -51,18 +51,19 @@ def test_kl_term_has_the_0_07_floor_per_latent_variable(trials):
 @pytest.mark.slow
 def test_training_reduces_the_loss_and_writes_a_checkpoint(trials, tmp_path):
     out = tmp_path / "m.pt"
-    result = train(trials, out, tc=TrainConfig(steps=60, validate_every=30, checkpoint_every=30, validation_exemplars=128),
+    result = train(trials, out, tc=TrainConfig(steps=20, validate_every=10, checkpoint_every=10, validation_exemplars=128),
                    progress=False, log=lambda _: None)
-    assert [s for s, _ in result.history] == [30, 60]
+    assert [s for s, _ in result.history] == [10, 20]
     assert result.history[1][1] < result.history[0][1]  # validation NLL improves early in training
     model, payload = load_checkpoint(out)
-    assert payload["step"] == 60 and payload["train_config"]["steps"] == 60
+    assert payload["step"] == 20 and payload["train_config"]["steps"] == 20
     assert len(payload["data_fingerprint"]) == 64
     assert result.validation["instances"] > 0 and np.isfinite(result.validation["nll_exact"])
 
 
 @pytest.mark.slow
 def test_resumed_training_equals_uninterrupted_training(trials, tmp_path):
+    trials = trials.subset(np.arange(8))
     straight = train(trials, tmp_path / "a.pt", tc=QUICK, progress=False, log=lambda _: None)
     train(trials, tmp_path / "b.pt", tc=TrainConfig(**{**vars(QUICK), "steps": 3}), progress=False, log=lambda _: None)
     resumed = train(trials, tmp_path / "b.pt", tc=QUICK, resume=tmp_path / "b.pt", progress=False, log=lambda _: None)
@@ -72,11 +73,10 @@ def test_resumed_training_equals_uninterrupted_training(trials, tmp_path):
 
 
 @pytest.mark.slow
-def test_resume_refuses_other_data(trials, tmp_path):
-    train(trials, tmp_path / "m.pt", tc=QUICK, progress=False, log=lambda _: None)
+def test_resume_refuses_other_data(pretrained, tmp_path):
     other = synthetic_trials(20, seed=6)
     with pytest.raises(InputError, match="different data"):
-        train(other, tmp_path / "n.pt", tc=QUICK, resume=tmp_path / "m.pt", progress=False, log=lambda _: None)
+        train(other, tmp_path / "n.pt", tc=QUICK, resume=pretrained, progress=False, log=lambda _: None)
 
 
 @pytest.mark.slow
@@ -129,9 +129,12 @@ def test_resume_needs_a_training_checkpoint(trials, tmp_path):
 # ---------------------------------------------------------------- fine-tuning and cross-validation
 @pytest.fixture(scope="module")
 def pretrained(trials, tmp_path_factory):
-    path = tmp_path_factory.mktemp("init") / "hold.pt"
-    train(trials, path, "cvae-hold", QUICK, progress=False, log=lambda _: None)
-    return path
+    """A small cvae-hold model (helpers_model.SMALL_UNITS) fine-tuned for the 6 steps of QUICK: a
+    training checkpoint to fine-tune further, cross-validate or resume."""
+    folder = tmp_path_factory.mktemp("init")
+    train(trials, folder / "hold.pt", "cvae-hold", QUICK, init=small_checkpoint(folder / "small.pt", trials),
+          progress=False, log=lambda _: None)
+    return folder / "hold.pt"
 
 
 @pytest.mark.slow
@@ -169,7 +172,7 @@ def test_fine_tuning_refuses_another_variant_or_data_in_other_units(pretrained, 
 def test_early_stopping_keeps_the_best_weights(pretrained, trials, tmp_path):
     from dataclasses import replace
 
-    tc = replace(QUICK, steps=40, validate_every=2, checkpoint_every=2, lr_initial=0.01, lr_final=0.01, patience=2,
+    tc = replace(QUICK, steps=40, validate_every=2, checkpoint_every=2, lr_initial=0.1, lr_final=0.1, patience=2,
                  validation_exemplars=10**6)
     result = train(trials, tmp_path / "s.pt", None, tc, init=pretrained, progress=False, log=lambda _: None)
     steps, values = zip(*result.history)

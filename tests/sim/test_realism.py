@@ -115,11 +115,11 @@ def test_realism_command(tmp_path, capsys):
 @pytest.mark.slow
 def test_self_play_generates_the_study_with_a_learned_driver_in_both_cars(tmp_path, capsys):
     out = tmp_path / "self_play.parquet"
-    assert main(["generate", "--trials", "4", "--drivers", "model:driver", "--seed", "1", "--out", str(out), "--json"]) == 0
+    assert main(["generate", "--trials", "2", "--drivers", "model:driver", "--seed", "1", "--out", str(out), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert report["trials"] == 4 and report["drivers"] == "model:driver" and report["simulated"] >= 4
+    assert report["trials"] == 2 and report["drivers"] == "model:driver" and report["simulated"] >= 2
     assert main(["stats", str(out), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["trials"] == 4
+    assert json.loads(capsys.readouterr().out)["trials"] == 2
     # drivers that never change lanes cannot play the study: a clear error, no file
     bad = tmp_path / "never.parquet"
     assert main(["generate", "--trials", "4", "--drivers", "constant-velocity", "--out", str(bad)]) == 2

@@ -12,6 +12,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from helpers_model import small_checkpoint, synthetic_trials
 from trafficweaving.cli import main
 from trafficweaving.data.trials import TrialSet, load_trials
 from trafficweaving.errors import InputError
@@ -409,26 +410,35 @@ def test_a_resumed_episode_is_measured_again_by_this_release(inline_run, tmp_pat
     assert {i: os.stat(episode_path(tmp_path, i)).st_mtime_ns for i in (0, 2, 3)} == kept
 
 
+@pytest.fixture(scope="module")
+def planner_run(tmp_path_factory):
+    """One episode of the paper's planner with a tiny budget and a small CVAE human model
+    (helpers_model.small_checkpoint), sampling at an explicit float32 (at int8 or bfloat16 it runs the
+    compiled decoder steps: minutes on a CPU without AVX-512; int8 sampling itself is tested in
+    tests/model/test_predictor.py)."""
+    out = tmp_path_factory.mktemp("planner")
+    model = small_checkpoint(out / "small.pt", synthetic_trials(4, seed=0))
+    return out, simulate(1, "planner", "synthetic", seed=0, out=out / "run", budget=Budget(1, 1, 2), precision="float32",
+                         model=str(model))
+
+
 @pytest.mark.slow
-def test_planner_episode_with_a_tiny_budget(tmp_path):
-    """The paper's planner (CVAE human model) in the loop: plans are timed and counted."""
-    summary = simulate(1, "planner", "synthetic", seed=0, out=tmp_path, budget=Budget(1, 1, 2))
-    record = records(tmp_path, 1)[0]
+def test_planner_episode_with_a_tiny_budget(planner_run):
+    """The planner in the loop: plans are timed and counted."""
+    out, summary = planner_run
+    record = records(out / "run", 1)[0]
     assert summary["planner_latency_s"]["plans"] == len(record["latencies_s"]) > 10
     assert record["spec"]["budget"] == [1, 1, 2] and summary["deadline_misses"] == record["latency"]["deadline_misses"]
 
 
 @pytest.mark.slow
-def test_the_planner_samples_at_the_precision_asked_for(tmp_path):
+def test_the_planner_samples_at_the_precision_asked_for(planner_run, tmp_path):
     """precision reaches the planner's human model and is logged; an unknown one is refused before
-    any episode runs. (An episode at int8 or bfloat16 runs the compiled decoder steps: minutes on a
-    CPU without AVX-512, so the episode runs at an explicit float32; int8 sampling itself is tested
-    in tests/model/test_predictor.py.)"""
+    any episode runs."""
     for precision in ("int8", "float32"):
         robot, _ = EpisodeSpec("planner", "synthetic", 0, budget=Budget(1, 1, 2), precision=precision).agents()
         assert robot.planner.human_model.precision == precision
-    simulate(1, "planner", "synthetic", seed=0, out=tmp_path, budget=Budget(1, 1, 2), precision="float32")
-    assert records(tmp_path, 1)[0]["spec"]["precision"] == "float32"
+    assert records(planner_run[0] / "run", 1)[0]["spec"]["precision"] == "float32"
     with pytest.raises(InputError, match="precision must be one of"):
         simulate(1, "planner", "synthetic", seed=0, out=tmp_path / "other", precision="fp8")
 

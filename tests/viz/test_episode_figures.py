@@ -28,10 +28,10 @@ def episode_log(tmp_path_factory):
 def test_fig6_and_animation_of_any_trial(tmp_path):
     trials, _ = generate_trials(2, seed=1)
     assert plot_episode(trials, 1, tmp_path / "fig6.png").read_bytes()[:8] == PNG
-    length = int(trials.lengths[0])
-    gif = animate_episode(trials.states[0, :, :length], ("human", "human"), tmp_path / "a.gif")
+    steps = 12  # a frame per step (test_plot_episode_command animates a whole episode)
+    gif = animate_episode(trials.states[0, :, 20:20 + steps], ("human", "human"), tmp_path / "a.gif")
     with Image.open(gif) as image:
-        assert image.n_frames == length and image.size == (800, 300)
+        assert image.n_frames == steps and image.size == (800, 300)
     with pytest.raises(ValueError, match="index 2 is outside 0..1"):
         plot_episode(trials, 2, tmp_path / "x.png")
 

@@ -96,7 +96,8 @@ def test_empty_trial_set_is_refused(trials, tmp_path):
 def test_planner_figures(tmp_path):
     import torch
 
-    from trafficweaving.model.cvae import CVAE
+    from helpers_model import SMALL_UNITS
+    from trafficweaving.model.cvae import CVAE, CVAEConfig
     from trafficweaving.model.predictor import HumanPredictor
     from trafficweaving.planning.candidates import Action
     from trafficweaving.planning.costs import PaperCost
@@ -107,7 +108,7 @@ def test_planner_figures(tmp_path):
     present = example_history()[-1, 0]
     fig4 = plot_candidates([(present, Action.of(0.0, "right").index, "right lane")], tmp_path / "fig4.png")
     torch.manual_seed(0)
-    planner = Planner(HumanPredictor(CVAE()), Budget(1, 4, 8))
+    planner = Planner(HumanPredictor(CVAE(CVAEConfig(**SMALL_UNITS))), Budget(1, 4, 8))
     fig5 = plot_plan(planner, example_history(), Action.of(0.0, "right").index, PaperCost(goal_y=LANE_CENTRE_Y["left"]),
                      tmp_path / "fig5.png", samples=8, scoring_samples=16)
     for path in (fig4, fig5):

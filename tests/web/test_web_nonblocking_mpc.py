@@ -85,13 +85,13 @@ def test_in_time_plans_are_executed_window_by_window():
 def test_the_comfort_first_robot_executes_each_window_as_the_mode_that_planned_it():
     """9 m ahead of a human 4 m/s faster in the other lane, 4.1 s before the cutoff: the comfort
     mode's longer look holds the robot in its lane even accelerating as hard as that mode can, and
-    as the stand-off would last until 2 s before the cutoff (:data:`STANDOFF_WITHIN`) the decisive
-    fallback takes over and sets out; every executed window is rolled out with the motion of the
+    as the stand-off would last until 2 s before the cutoff (:data:`STANDOFF_WITHIN`) the fallback
+    (the decisive set-out check) takes over and sets out; every executed window is rolled out with the motion of the
     plan that chose it."""
     mode = STYLES["planner"]
     policy = NonBlockingMPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=mode))
     start = START + [[[3.0, 0, 0, 0, 0, 0], [-8.0, 0, 4.0, 0, 0, 0]]]
-    world, _ = drive(policy, 40, wait_at=range(HOLD_STEPS, 40, 3), start=start)
+    world, _ = drive(policy, 55, wait_at=range(HOLD_STEPS, 55, 3), start=start)
     robot = world.history[0, 0]
     modes = [plan.style for plan in policy.plans]
     fell = modes.index(mode.fallback)

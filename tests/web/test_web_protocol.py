@@ -5,8 +5,6 @@ recorded trials load with `stats`, `evaluate` and `simulate --human replay:FILE`
 
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +14,7 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from helpers_web import client, drive_server, lane_change_steer, receive, send, ws_url
+from trafficweaving.cli import main
 from trafficweaving.data.trials import load_trials
 from trafficweaving.scenario import MIN_TRIAL_STEPS, study_initial_conditions
 from trafficweaving.web.protocol import MAX_MESSAGE_BYTES
@@ -232,14 +231,15 @@ def test_a_page_from_another_origin_is_refused(server):
         connect(ws_url(url), origin="http://evil.example", open_timeout=5)
 
 
-def _cli(*args):
-    result = subprocess.run([sys.executable, "-m", "trafficweaving", *args], capture_output=True, text=True, timeout=240)
-    assert result.returncode == 0, result.stderr
-    return json.loads(result.stdout) if "--json" in args else result.stdout
+def _cli(capsys, *args):
+    code = main(list(args))
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    return json.loads(out)
 
 
 @pytest.mark.slow
-def test_recorded_trials_load_with_stats_evaluate_and_simulate(server, tmp_path):
+def test_recorded_trials_load_with_stats_evaluate_and_simulate(server, tmp_path, capsys):
     url, out = server
     files = sorted(out.glob("drive_*.parquet"))
     if not files:  # run on its own: record a trial first
@@ -249,12 +249,12 @@ def test_recorded_trials_load_with_stats_evaluate_and_simulate(server, tmp_path)
             ended, *_ = drive_to_the_end(ws, 1, started["states"][1][1], 0)
         files = [Path(ended["file"])]
     recorded = load_trials(files[0])
-    stats = _cli("stats", str(files[0]), "--json")
+    stats = _cli(capsys, "stats", str(files[0]), "--json")
     assert stats["trials"] == 1 and stats["steps"]["min"] == recorded.lengths[0]
-    evaluation = _cli("evaluate", "--model", "default", "--data", str(files[0]), "--json",
+    evaluation = _cli(capsys, "evaluate", "--model", "default", "--data", str(files[0]), "--json",
                       "--coverage-samples", "10", "--ade-samples", "5", "--samples", "10")
     assert evaluation["instances"] == recorded.lengths[0] - 19 and math.isfinite(evaluation["nll_exact"])
-    summary = _cli("simulate", "--robot", "rules", "--human", f"replay:{files[0]}", "--episodes", "1",
+    summary = _cli(capsys, "simulate", "--robot", "rules", "--human", f"replay:{files[0]}", "--episodes", "1",
                    "--out", str(tmp_path / "sim"), "--json")
     assert summary["episodes"] == 1
     episode = load_trials(tmp_path / "sim" / "episodes" / "episode_000000.parquet")
