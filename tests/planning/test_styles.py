@@ -249,17 +249,18 @@ def test_the_standoff_exit_makes_room_beside_the_human():
     """2 m behind the human at the same speed, the robot yields (hardest braking); 4 m ahead, or
     beside a human braking at 8 m/s², it goes ahead. The planner costs every other window-1
     acceleration ``standoff_exit_cost`` while the set-out rule holds the robot in its lane, and
-    only then."""
-    style = STYLES["planner"].fallback
+    only then. (On the decisive kinematics, whose window-1 accelerations the toy human separates.)"""
+    style = replace(STYLES["planner"].fallback, kinematics=KINEMATICS["settled"])
     assert style.standoff_exit_cost == STYLES["planner"].standoff_exit_cost == STANDOFF_EXIT_COST
     history = _history()
     robot, human = history[-1]
     assert style.blocks_set_out(robot, human)  # the human 2 m ahead at the same speed
-    assert style.kinematics.accelerations[standoff_exit(robot, human, style.kinematics, SET_OUT_GAP)] == -6.0
+    hardest, ahead_acceleration = style.kinematics.hardest_braking, max(style.kinematics.accelerations)
+    assert style.kinematics.accelerations[standoff_exit(robot, human, style.kinematics, SET_OUT_GAP)] == -hardest
     ahead = robot + [6.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-    assert style.kinematics.accelerations[standoff_exit(ahead, human, style.kinematics, SET_OUT_GAP)] == 4.0
+    assert style.kinematics.accelerations[standoff_exit(ahead, human, style.kinematics, SET_OUT_GAP)] == ahead_acceleration
     braking = human + [0.0, 0.0, 0.0, 0.0, -8.0, 0.0]  # a human that yields too: the robot goes ahead
-    assert style.kinematics.accelerations[standoff_exit(robot, braking, style.kinematics, SET_OUT_GAP)] == 4.0
+    assert style.kinematics.accelerations[standoff_exit(robot, braking, style.kinematics, SET_OUT_GAP)] == ahead_acceleration
     keep, cost = Action.of(0.0, "right").index, GoalToyCost(LEFT)
     ruled = Planner(ToyHuman(), seed=0, style=style).plan(history, keep, cost)
     plain = Planner(ToyHuman(), seed=0, style=replace(style, standoff_exit_cost=0.0)).plan(history, keep, cost)
