@@ -22,6 +22,7 @@ drawing its parameters at reset; the other car is "the robot" to it.
 from __future__ import annotations
 
 import copy
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,7 +68,7 @@ class LaneChanges:
         return np.where(self.moving, moving, 0.0)
 
 
-class ScriptedHuman:
+class ScriptedHuman(ABC):
     """A scenario's human for ``m`` episodes at once (the agent protocol of
     :class:`~trafficweaving.sim.world.Agent`). Subclasses script :meth:`drive`; this class keeps
     the lane changes and the speed range. Its parameters (:attr:`Scenario.parameters`, ``[m]``
@@ -110,11 +111,11 @@ class ScriptedHuman:
         xdd = np.clip(xdd, (low - own[:, 2]) / DT, (high - own[:, 2]) / DT)
         return np.stack([xdd, self.lateral.acceleration(t)], axis=1)
 
+    @abstractmethod
     def drive(self, t: int, history: np.ndarray, own: np.ndarray, robot: np.ndarray) -> np.ndarray:
         """The longitudinal accelerations ``[m]`` (m/s²) at step ``t + 1`` (lane changes begun
         through :attr:`lateral`), from both cars' ``history [m, 2, t+1, 6]`` and present states
-        ``own``, ``robot`` ``[m, 6]``."""
-        raise NotImplementedError
+        ``own``, ``robot`` ``[m, 6]``: each scenario's script."""
 
     def change_lanes(self, which: np.ndarray, t: int, own: np.ndarray, duration: float = LANE_CHANGE_S) -> None:
         """Begin the lane change into the other lane in the episodes ``which`` not changing yet."""
