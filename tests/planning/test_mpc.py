@@ -131,3 +131,27 @@ def test_the_safety_layer_overrides_an_accelerating_window_when_a_car_cuts_in_ah
                                        KINEMATICS["safety"])
         if policy_class == "blocking":
             assert int(policy.plans[-1].actions[0]) == decision.chosen
+
+
+def test_the_planner_plans_within_what_the_safety_layer_will_let_it_drive():
+    """With a car cutting in ahead, a planner with a safety layer chooses a window 1 the layer is
+    expected to pass (:func:`~trafficweaving.planning.safety.unsafe_next`); the same planner
+    without the layer is free to choose one the layer would reject."""
+    from trafficweaving.planning.costs import PaperCost
+    from trafficweaving.planning.safety import unsafe_next
+
+    t = np.arange(HOLD_STEPS + 1)[:, None] * DT
+    robot = np.array([-70.0, RIGHT, 29.0, 0.0, 0.0, 0.0]) + t * [29.0, 0, 0, 0, 0, 0]
+    human = np.array([-56.0, -3.0, 29.0, -1.5, -1.0, 0.0]) + t * [29.0, 0, 0, 0, 0, 0]  # 14 m ahead, cutting in
+    history = np.stack([robot, human], axis=1)  # [t+1, 2, 6]
+    hold = Action.of(0.0, "right").index
+    style = STYLES["planner"]
+    candidates_next = rollout(history[-1, 0], np.array([[hold]]), style.kinematics)[0, -1]
+    unsafe = unsafe_next(candidates_next, history[-1, 1], style.kinematics, style.safety_fallback.kinematics)
+    assert unsafe.any() and not unsafe.all()
+    cost = PaperCost(goal_y=LEFT)
+    plan = Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=style).plan(history, hold, cost)
+    assert not unsafe[int(plan.actions[1])]
+    assert (plan.window_costs[unsafe] >= 100_000).all()
+    free = Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=replace(style, safety_layer=False))
+    assert (free.plan(history, hold, cost).window_costs[unsafe] < 100_000).all()

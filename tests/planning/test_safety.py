@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from trafficweaving.planning.candidates import KINEMATICS, N_ACTIONS, Action
 from trafficweaving.planning.safety import (CLEAR_X, HUMAN_BRAKING, RESPONSE_TIME, action_times,
-                                            plausible_human_paths, safe_action)
+                                            plausible_human_paths, predicted_human, safe_action, unsafe_next)
 from trafficweaving.scenario import COLLISION_DX, COLLISION_DY, DT, LANE_CENTRE_Y
 
 LEFT, RIGHT = LANE_CENTRE_Y["left"], LANE_CENTRE_Y["right"]
@@ -128,3 +128,23 @@ def test_what_it_drives_in_lane_behind_a_car_cutting_in_ahead_stays_clear(gap, s
         assert _clear_of_every_plausible_human(robot, human, acceleration)
     if acceleration > 0:  # accelerating towards it only with room to spare
         assert decision.any_safe and gap > CLEAR_X
+
+
+def test_the_next_window_is_judged_from_where_both_cars_will_be_when_it_starts():
+    """unsafe_next: the window after the one being executed is checked from the robot's state at
+    its start and the human's predicted there (holding its accelerations for the response time)."""
+    human = state(-54, -3.0, vy=-1.5, a=-1.0, ay=-0.5)
+    later = predicted_human(human, RESPONSE_TIME)
+    x, y, v, vy = -54 + 29 * 0.3 - 0.5 * 0.09, -3.0 - 1.5 * 0.3 - 0.25 * 0.09, 29 - 0.3, -1.5 - 0.15
+    np.testing.assert_allclose(later, [x, y, v, vy, -1.0, -0.5])
+    robot_next = state(-51.3, RIGHT)  # where a robot at -60 m, 29 m/s, will be
+    unsafe = unsafe_next(robot_next, human, COMFORT, SAFETY)
+    expected = np.isfinite(action_times(robot_next, later, COMFORT, SAFETY)[0])
+    if expected.all():
+        assert not unsafe.any()  # nothing would pass: the layer's least-bad choice decides, not the plan
+    else:
+        np.testing.assert_array_equal(unsafe, expected)
+    far = unsafe_next(state(-90, RIGHT), state(-40, LEFT), COMFORT, SAFETY)
+    assert not far.any()  # 50 m apart in their own lanes: every window passes
+    cutting_in = unsafe_next(state(-62, RIGHT), human, SETTLED, SETTLED)
+    assert cutting_in[ACCELERATE_RIGHT] and not cutting_in.all()  # not accelerating into it; braking passes

@@ -9,7 +9,7 @@ from trafficweaving.sim.metrics import aggregate
 
 def test_every_window_the_safety_layer_changed_is_recorded_and_counted():
     torch.set_num_threads(1)
-    spec = EpisodeSpec("planner-cv", "scenario:late-cut-in", seed=0, budget=Budget(1, 2, 4))
+    spec = EpisodeSpec("planner-cv", "scenario:never-yield", seed=0, budget=Budget(1, 2, 4))
     robot, human = spec.agents()
     records = []
     for index in range(2):
@@ -21,6 +21,6 @@ def test_every_window_the_safety_layer_changed_is_recorded_and_counted():
     logs = [r["safety_overrides"] for r in records]
     assert summary == {"windows": sum(map(len, logs)), "episodes": sum(map(bool, logs)),
                        "unresolved": sum(not o["any_safe"] for log in logs for o in log)}
-    assert summary["episodes"] > 0  # the human cuts in ahead: the robot's accelerating windows are overridden
+    assert summary["episodes"] > 0  # the human swerves in from beside: nothing the plan chose is safe any more
     legacy = [{k: v for k, v in r.items() if k != "safety_overrides"} for r in records]
     assert aggregate(legacy)["safety_overrides"] is None

@@ -25,8 +25,9 @@ from .. import validate
 from ..dynamics import future_states
 from ..errors import InputError
 from ..scenario import DT, HORIZON, LANE_CENTRE_Y, STATE_NAMES
-from .candidates import N_ACTIONS, N_CANDIDATES, WINDOWS, Candidates, Kinematics, robot_candidates
+from .candidates import N_ACTIONS, N_CANDIDATES, STEPS_PER_WINDOW, WINDOWS, Candidates, Kinematics, robot_candidates
 from .costs import Cost
+from .safety import UNSAFE_NEXT_COST, unsafe_next
 from .styles import DrivingStyle, rule_costs
 
 SCREENING_SAMPLES = 32
@@ -189,8 +190,15 @@ class Planner:
 
     def _rules(self, style: DrivingStyle, candidates: Candidates, history: np.ndarray, cost: Cost) -> torch.Tensor:
         """``style``'s rule costs of each candidate ``[C]`` (:func:`~.styles.rule_costs`) towards the
-        goal lane of ``cost`` (its ``goal_y``; none for a cost without one)."""
+        goal lane of ``cost`` (its ``goal_y``; none for a cost without one), and where the planner's
+        style has a safety layer, :data:`~.safety.UNSAFE_NEXT_COST` for a window 1 the layer is
+        expected to reject (:func:`~.safety.unsafe_next`; responses braking as the planner's
+        ``safety_fallback``)."""
         rules = rule_costs(style, candidates, history, getattr(cost, "goal_y", None))
+        if self.style.safety_layer:
+            braking = (self.style.safety_fallback or style).kinematics
+            unsafe = unsafe_next(candidates.states[0, STEPS_PER_WINDOW - 1], history[-1, 1], style.kinematics, braking)
+            rules = rules + UNSAFE_NEXT_COST * unsafe[candidates.actions[:, 1]]
         return torch.as_tensor(rules, dtype=self.dtype, device=self.device)
 
     def _sample(self, prepared: torch.Tensor, n: int, human_present: torch.Tensor) -> torch.Tensor:

@@ -20,7 +20,9 @@ action (by the last plan's costs of its window-1 actions, :attr:`~.planner.Plan.
 where none is safe, the least-bad one: the action whose best response meets the human's worst
 plausible motion latest, ties broken by hardest braking in the lane the robot is in (a
 minimal-risk manoeuvre). So the robot never accelerates towards a car moving into its lane ahead
-of it unless it stays clear whatever that car does. Assumptions and limits: docs/planner.md,
+of it unless it stays clear whatever that car does. The planner plans within what the layer will let it
+drive: :func:`unsafe_next` marks the next windows it is expected to reject
+(:data:`UNSAFE_NEXT_COST`). Assumptions and limits: docs/planner.md,
 Safety layer.
 """
 
@@ -48,6 +50,10 @@ CLEAR_X = COLLISION_DX + 1.0
 CLEAR_Y = COLLISION_DY + 0.2
 """Sideways distance (m, centre to centre) at which the cars are clear: the collision rule's
 1.8 m and 0.2 m."""
+UNSAFE_NEXT_COST = 100_000.0
+"""The plan's cost of a candidate whose window 1 the safety layer is expected to reject
+(:func:`unsafe_next`) while another would pass: more than a sampled future's collision costs can
+add up to (about 66,000), so the planner plans within what the layer will let it drive."""
 RESPONSES = ("hold speed", "brake", "accelerate")
 """The robot's responses after the checked window, in :func:`robot_paths`' order (accelerating up
 to the study's speed alert, :data:`~trafficweaving.scenario.SPEED_ALERT`: away from a faster car
@@ -149,6 +155,25 @@ def action_times(robot: np.ndarray, human: np.ndarray, kinematics: Kinematics, b
     humans = plausible_human_paths(human, paths.shape[2])
     return np.stack([conflict_times(paths, humans, *apart).min(-1).max(-1)
                      for apart in ((CLEAR_X, CLEAR_Y), (COLLISION_DX, COLLISION_DY))])
+
+
+def predicted_human(human: np.ndarray, seconds: float) -> np.ndarray:
+    """The human's state ``[6]`` ``seconds`` from its present state ``human [6]``, holding its
+    accelerations (the first of :func:`plausible_human_paths`' motions, without a stop)."""
+    x, y, v, vy, a, ay = human
+    return np.array([x + v * seconds + 0.5 * a * seconds ** 2, y + vy * seconds + 0.5 * ay * seconds ** 2,
+                     v + a * seconds, vy + ay * seconds, a, ay])
+
+
+def unsafe_next(robot_next: np.ndarray, human: np.ndarray, kinematics: Kinematics, braking: Kinematics) -> np.ndarray:
+    """Per action of ``kinematics``, whether the safety layer is expected to reject it as the next
+    window ``[N_ACTIONS]`` (bool): not safe (:func:`action_times`) from the robot's state at the
+    next window's start ``robot_next [6]`` and the human's, predicted from its present state
+    ``human [6]`` by :func:`predicted_human`; all False where none would be safe (the layer's
+    least-bad choice is made when the window starts). Responses brake as ``braking``."""
+    human_next = predicted_human(human, RESPONSE_TIME)
+    unsafe = np.isfinite(action_times(robot_next, human_next, kinematics, braking)[0])
+    return unsafe if not unsafe.all() else np.zeros(N_ACTIONS, dtype=bool)
 
 
 def safe_action(robot: np.ndarray, human: np.ndarray, proposed: int, kinematics: Kinematics,
