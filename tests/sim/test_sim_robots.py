@@ -154,7 +154,7 @@ def test_the_planning_robots_drive_in_their_styles():
     assert robot_planner("planner-decisive").style == robot_planner("planner-cv").style == STYLES["planner-decisive"]
     first = robot_planner("planner").style
     assert first == STYLES["planner"] and first.kinematics == KINEMATICS["comfort"]
-    assert first.fallback == replace(STYLES["planner-decisive"], kinematics=KINEMATICS["comfort"],
+    assert first.fallback == replace(STYLES["planner-decisive"], kinematics=KINEMATICS["safety"],
                                      standoff_exit_cost=first.standoff_exit_cost, progress_cost=first.progress_cost)
     paper = STYLES["planner-paper"]
     assert robot_planner("planner-paper").style == paper and paper.kinematics == KINEMATICS["paper"]

@@ -213,7 +213,7 @@ _COMFORT_FIRST_RULES = {"standoff_exit_cost": STANDOFF_EXIT_COST, "progress_cost
 exit, and getting going again in the goal lane."""
 STYLES = {
     "planner": replace(_COMFORT, **_COMFORT_FIRST_RULES,
-                       fallback=replace(_DECISIVE, kinematics=KINEMATICS["comfort"], **_COMFORT_FIRST_RULES),
+                       fallback=replace(_DECISIVE, kinematics=KINEMATICS["safety"], **_COMFORT_FIRST_RULES),
                        safety_fallback=replace(_COMFORT, kinematics=KINEMATICS["safety"], **_COMFORT_FIRST_RULES),
                        fallback_within=FALLBACK_WITHIN, standoff_within=STANDOFF_WITHIN),
     "planner-decisive": _DECISIVE,
@@ -222,10 +222,10 @@ STYLES = {
     "planner-cautious": replace(_DECISIVE, risk=0.2),
 }
 """The planning robots' driving styles by their ``--robot`` names (docs/planner.md, Driving
-styles): ``planner`` comfort first (comfortable throughout: when time runs short or in a
-stand-off it falls back on the decisive style's shorter set-out check, in the comfort kinematics;
-braking as decisively, with comfortable steering, where its safety layer needs to; making room
-beside the human), ``planner-decisive``, ``planner-paper`` (the paper's exactly), ``planner-comfort``
+styles): ``planner`` comfort first (comfortable until time runs short or a stand-off needs
+a way out: then it falls back on the decisive style's shorter set-out check and its accelerations,
+with comfortable steering, as it brakes where its safety layer needs to; making room beside the
+human), ``planner-decisive``, ``planner-paper`` (the paper's exactly), ``planner-comfort``
 (decisive within nuPlan's comfort limits) and ``planner-cautious`` (decisive, judged by CVaR_0.2)."""
 
 
