@@ -20,10 +20,9 @@ action (by the last plan's costs of its window-1 actions, :attr:`~.planner.Plan.
 where none is safe, the least-bad one: the action whose best response meets the human's worst
 plausible motion latest, ties broken by hardest braking in the lane the robot is in (a
 minimal-risk manoeuvre). So the robot never accelerates towards a car moving into its lane ahead
-of it unless it stays clear whatever that car does. The planner plans within what the layer will let it
-drive: :func:`unsafe_next` marks the next windows it is expected to reject
-(:data:`UNSAFE_NEXT_COST`). Assumptions and limits: docs/planner.md,
-Safety layer.
+of it unless it stays clear whatever that car does. The planner plans within what the layer will
+let it drive: :func:`unsafe_next` marks the next windows it is expected to reject
+(:data:`UNSAFE_NEXT_COST`). Assumptions and limits: docs/planner.md, Safety layer.
 """
 
 from __future__ import annotations
