@@ -4,8 +4,9 @@ The same seed gives the same ``evaluate`` figures and, at a fixed sample budget,
 closed-loop episodes bit for bit (the SHA-256 of an episode's states). Torch's CPU kernels, and so
 every episode with a learned model in it, are reproducible for one kernel family and one thread
 count: the pins were recorded with one torch thread on an AVX2 CPU and are compared exactly there;
-elsewhere those episodes are skipped with the reason shown (the NumPy-only episode and the
-figures, to 1e-6, are compared everywhere).
+elsewhere those episodes are skipped with the reason shown. NumPy's SIMD kernels also differ in
+the last bits between CPU families, so elsewhere the NumPy-only episode is compared by its length
+and score (to 1e-9) rather than bit for bit, and the figures to 1e-6.
 """
 
 from __future__ import annotations
@@ -73,4 +74,9 @@ def test_closed_loop_episodes_are_pinned(episode, one_thread):
     trials = run_episode(EpisodeSpec(robot, human, 11, budget=BUDGET, precision="float32"), index).trials
     digest = hashlib.sha256(np.ascontiguousarray(trials.states, dtype="<f8").tobytes()).hexdigest()
     score = trials.metadata["episode"]["metrics"]["score"]["score"]
-    assert (digest, int(trials.lengths[0]), score) == EPISODES[episode]
+    _, pinned_steps, pinned_score = EPISODES[episode]
+    if torch.backends.cpu.get_cpu_capability() == PINNED_ON:
+        assert (digest, int(trials.lengths[0]), score) == EPISODES[episode]
+    else:
+        assert int(trials.lengths[0]) == pinned_steps
+        np.testing.assert_allclose(score, pinned_score, rtol=1e-9, atol=0)
