@@ -22,12 +22,16 @@ Measured in one run, same process, same model:
   samples; also relative to the spread of expected costs over the candidates), over
   ``--realtime-plans`` real-time plans per situation, and, as the noise floor, the same for a second
   full-budget plan with another seed;
-  the same two figures for full-budget plans in bfloat16 and in int8; and how often the real-time
+  the same two figures for full-budget plans in bfloat16 and in int8; with ``--baseline-model``
+  (e.g. ``--model fast --baseline-model default``), the naive loop samples the baseline, and the
+  int8 full-budget plans' next windows are compared with the baseline's float32 full-budget ones
+  (agreement, regret re-scored by the baseline) beside the baseline's own noise floor; and how often the real-time
   plan's first free window equals that of a full-budget plan sampled in the real-time plans'
   precision (``--realtime-precision``), with, as that precision's noise floor, the same for two
   such full-budget plans with different seeds.
 
     python benchmarks/bench_plan.py [--threads N] [--situations 18] [--deadline 0.3] [--model default]
+                                    [--baseline-model default]
                                     [--episodes SIMULATE_OUT_DIR] [--realtime-plans 1]
 
 ``--threads`` is an integer in 1..os.cpu_count(), ``--repeats``, ``--situations`` and
@@ -161,6 +165,9 @@ def arguments() -> tuple[argparse.Namespace, int]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument("--model", default="default")
+    parser.add_argument("--baseline-model", help="the naive loop samples this model instead (e.g. default, beside "
+                        "--model fast), and the real-time figures compare --model's int8 full-budget choices with "
+                        "this model's float32 ones")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--situations", type=int, default=18)
     parser.add_argument("--deadline", type=float, default=0.3)
@@ -185,8 +192,9 @@ def arguments() -> tuple[argparse.Namespace, int]:
 
 
 def speed(args: argparse.Namespace, threads: int, model, exact: HumanPredictor, low: HumanPredictor, budget: Budget,
-          history: np.ndarray, first: int, cost: PaperCost) -> tuple[dict, Planner, Planner]:
-    """The report's speed figures (module docstring) and the float32 and int8 full-budget planners."""
+          history: np.ndarray, first: int, cost: PaperCost, baseline=None) -> tuple[dict, Planner, Planner]:
+    """The report's speed figures (module docstring) and the float32 and int8 full-budget planners;
+    the naive loop samples ``baseline`` when given."""
     common = args.random_numbers == "common"
     report = {"threads": threads, "futures": budget.futures, "random_numbers": args.random_numbers,
               "cpu": cpu_matrix_features()}
@@ -204,20 +212,28 @@ def speed(args: argparse.Namespace, threads: int, model, exact: HumanPredictor, 
     report["int8_seconds"] = round(statistics.median(quantised.plan(history, first, cost).seconds
                                                      for _ in range(args.repeats)), 3)
     if not args.skip_naive:
-        report["naive_seconds"] = round(naive_plan(model, history, first, cost, budget), 3)
+        report["naive_model"] = args.baseline_model or args.model
+        report["naive_seconds"] = round(naive_plan(model if baseline is None else baseline, history, first, cost, budget), 3)
         report["speedup"] = round(report["naive_seconds"] / report["seconds"], 2)
         report["int8_speedup"] = round(report["naive_seconds"] / report["int8_seconds"], 2)
     return report, planner, quantised
 
 
 def decision_quality(args: argparse.Namespace, model, planner: Planner, exact: HumanPredictor, low: HumanPredictor,
-                     quantised: Planner, budget: Budget, history: np.ndarray, first: int, cost: PaperCost) -> dict:
+                     quantised: Planner, budget: Budget, history: np.ndarray, first: int, cost: PaperCost,
+                     baseline=None) -> dict:
     """The report's ``realtime`` figures (module docstring), from ``planner`` (float32, full budget:
     the reference and the re-scoring), the bfloat16 and int8 full-budget planners, and real-time
-    plans at ``--realtime-precision``."""
+    plans at ``--realtime-precision``; with ``baseline`` (a model), also how often the int8
+    full-budget plan's next window equals the baseline's float32 full-budget plan's, and its regret
+    re-scored by the baseline, beside the baseline's own noise floor (two of its plans, different
+    seeds)."""
     common = args.random_numbers == "common"
     agree, regret, agree_full, regret_full, agree_bf16, regret_bf16, late, spread = [], [], [], [], [], [], [], []
     agree_int8, regret_int8, agree_same, agree_same_full = [], [], [], []
+    agree_base, regret_base, agree_base_floor, regret_base_floor = [], [], [], []
+    base_exact = None if baseline is None else HumanPredictor(baseline, precision="float32", common_random_numbers=common)
+    base_planner = None if baseline is None else Planner(base_exact, budget)
     realtime = Planner(HumanPredictor(model, precision=args.realtime_precision, common_random_numbers=common), budget,
                        seed=1)
     realtime.plan(history, first, cost, deadline=args.deadline)  # warm-up: measures its speed
@@ -246,7 +262,24 @@ def decision_quality(args: argparse.Namespace, model, planner: Planner, exact: H
         regret_bf16.append(expected_cost(planner, hist, fixed, c, lower.index) - reference)
         agree_int8.append(coarse.actions[1] == full.actions[1])
         regret_int8.append(expected_cost(planner, hist, fixed, c, coarse.index) - reference)
-    return {
+        if baseline is not None:
+            base = Planner(base_exact, budget, seed=600 + k).plan(hist, fixed, c)
+            base_other = Planner(base_exact, budget, seed=700 + k).plan(hist, fixed, c)
+            base_reference = expected_cost(base_planner, hist, fixed, c, base.index)
+            agree_base.append(coarse.actions[1] == base.actions[1])
+            regret_base.append(expected_cost(base_planner, hist, fixed, c, coarse.index) - base_reference)
+            agree_base_floor.append(base_other.actions[1] == base.actions[1])
+            regret_base_floor.append(expected_cost(base_planner, hist, fixed, c, base_other.index) - base_reference)
+    baseline_figures = {} if baseline is None else {
+        "baseline_model": args.baseline_model,
+        "int8_vs_baseline_agreement": round(float(np.mean(agree_base)), 3),
+        "int8_vs_baseline_regret_mean": round(float(np.mean(regret_base)), 2),
+        "int8_vs_baseline_regret_median": round(float(np.median(regret_base)), 2),
+        "baseline_full_vs_full_agreement": round(float(np.mean(agree_base_floor)), 3),
+        "baseline_full_vs_full_regret_mean": round(float(np.mean(regret_base_floor)), 2),
+        "baseline_full_vs_full_regret_median": round(float(np.median(regret_base_floor)), 2),
+    }
+    return {**baseline_figures,
         "deadline": args.deadline, "situations": len(chosen), "plans": len(late), "max_seconds": round(max(late), 3),
         "within_deadline": int(sum(s <= args.deadline for s in late)),
         "first_action_agreement": round(float(np.mean(agree)), 3),
@@ -273,9 +306,11 @@ def main() -> None:
     budget = Budget()
     history, first = example_history(), Action.of(0.0, "right").index
     cost = PaperCost(goal_y=LANE_CENTRE_Y["left"])
-    report, planner, quantised = speed(args, threads, model, exact, low, budget, history, first, cost)
+    baseline = None if args.baseline_model is None else load_model(args.baseline_model)
+    report, planner, quantised = speed(args, threads, model, exact, low, budget, history, first, cost, baseline)
     print(json.dumps(report), flush=True)
-    report["realtime"] = decision_quality(args, model, planner, exact, low, quantised, budget, history, first, cost)
+    report["realtime"] = decision_quality(args, model, planner, exact, low, quantised, budget, history, first, cost,
+                                          baseline)
     print(json.dumps(report))
 
 

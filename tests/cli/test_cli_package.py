@@ -33,7 +33,7 @@ def test_no_function_of_the_cli_is_over_80_lines():
 
 def test_every_group_adds_its_commands_in_order():
     commands = list(build_parser()._subparsers._group_actions[0].choices)
-    assert commands == ["generate", "import", "stats", "plot", "train", "crossval", "calibrate", "mix", "evaluate",
+    assert commands == ["generate", "import", "stats", "plot", "train", "crossval", "distil", "calibrate", "mix", "evaluate",
                         "predict", "bench", "simulate", "realism", "plot-episode", "drive", "demo", "report"]
 
 

@@ -275,12 +275,14 @@ def test_save_recomputes_given_reserved_fields_and_export_keeps_a_valid_digest(m
     assert exported[HASH_FIELD] == tensor_digest(exported)
 
 
-@pytest.mark.parametrize("name", ["default", "simulated-real", "driver"])
+@pytest.mark.parametrize("name", ["default", "simulated-real", "driver", "fast"])
 def test_the_shipped_models_load_and_verify(name):
     model, payload = load_checkpoint(shipped_model_path(name))
     assert model.config.robot_future == ("guess" if name == "driver" else "recorded")
     assert payload["version"] in READABLE_VERSIONS and payload[HASH_FIELD] == tensor_digest(payload)
-    assert model.config.name == "cvae-hold" and all(v.dtype == torch.float32 for v in payload["state_dict"].values())
+    assert model.config.hold and all(v.dtype == torch.float32 for v in payload["state_dict"].values())
+    sizes = (32, 8) if name == "fast" else (128, 16)  # the fast model: the default's decoder distilled (docs/fast_model.md)
+    assert (model.config.decoder_units, model.config.components) == sizes
     if name != "driver":  # the driver model is not calibrated (docs/realism.md)
         scale = payload["calibration"]["output_scale"]  # {"x", "y"}, or one number in files before version 4
         assert model.output_scale.tolist() == pytest.approx(list(scale.values()) if isinstance(scale, dict) else [scale] * 2)

@@ -27,7 +27,7 @@ from trafficweaving.sim.humans import HumanSpec, parse_human_spec
 ])
 def test_a_model_spec_is_a_shipped_name_the_authors_weights_or_a_checkpoint(text, kind, path):
     assert parse_model_spec(text) == ModelSpec(text, kind, path)
-    assert set(SHIPPED_MODELS) == {"default", "simulated-real", "driver"}
+    assert set(SHIPPED_MODELS) == {"default", "simulated-real", "driver", "fast"}
 
 
 def test_an_empty_spec_is_refused_in_the_words_of_where_it_was_given():

@@ -11,6 +11,7 @@ import sys
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+import torch
 
 from helpers_model import small_checkpoint, synthetic_trials
 from trafficweaving.cli import main
@@ -349,6 +350,15 @@ def test_workers_and_pool_give_the_same_episodes(inline_run, tmp_path):
 
 
 @pytest.mark.slow
+def test_episodes_run_on_two_threads_are_the_same_episodes(inline_run, tmp_path):
+    out, _ = inline_run
+    before = torch.get_num_threads()
+    summary = simulate(4, "rules", "synthetic", seed=7, workers=1, out=tmp_path, threads=2)
+    assert summary["threads"] == 2 and torch.get_num_threads() == before  # the caller's setting is restored
+    assert all(a.equals(b) for a, b in zip(tables(out, 4), tables(tmp_path, 4)))
+
+
+@pytest.mark.slow
 def test_ray_gives_the_same_episodes(inline_run, tmp_path):
     ray = pytest.importorskip("ray")
     out, _ = inline_run
@@ -525,6 +535,7 @@ def test_cli_failing_episode(broken_replay, tmp_path, capsys):
     (["--workers", "0"], "argument --workers: expected an integer >= 1, got 0"),
     (["--deadline", "nan"], "argument --deadline: expected a finite number"),
     (["--engine", "local", "--address", "auto"], "applies only to the ray engine"),
+    (["--threads", "2", "--workers", "2"], "threads 2 applies to episodes run in this process"),
 ])
 def test_cli_bad_input(options, message, tmp_path, capsys):
     out = tmp_path / "run"

@@ -1,5 +1,5 @@
-"""The human-model commands: ``train``, ``crossval``, ``calibrate``, ``mix``, ``evaluate`` and
-``predict``."""
+"""The human-model commands: ``train``, ``crossval``, ``distil``, ``calibrate``, ``mix``, ``evaluate``
+and ``predict``."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def _processes() -> int:
 
 
 def _add_fitting(sub) -> None:
-    """``train`` and ``crossval``."""
+    """``train``, ``crossval`` and ``distil``."""
     from ..model.crossval import MAX_FOLDS
     from ..sim.batch import WORKERS_PER_CPU
 
@@ -57,8 +57,59 @@ def _add_fitting(sub) -> None:
     p.add_argument("--workers", type=_int_at_least(1, processes), default=1,
                    help=f"fits run in this many processes, 1..{processes} ({WORKERS_PER_CPU} per CPU core here; "
                         f"default 1)")
+    p.add_argument("--teacher-folds", metavar="DIR", help="distil instead: each fit distils the teacher trained without "
+                   "the same folds, from this folder of `crossval --nested --out` (same --folds, --seed); with the "
+                   "options of `distil`; --init: the student to start from; --lr default 1e-3, --validate-every "
+                   "default 100")
+    _add_student_options(p)
     _add_schedule_options(p, steps=1000)
     p.set_defaults(func=cmd_crossval)
+
+    p = sub.add_parser("distil", help="a human model with a smaller decoder that predicts what a larger one does "
+                                      "(docs/model.md, the fast model)")
+    p.add_argument("--data", required=True, help="Parquet dataset: the situations and recorded actions it learns on")
+    p.add_argument("--teacher", required=True, metavar="MODEL",
+                   help="the model to distil (checkpoint or default; a mixture's first component; calibration reset)")
+    p.add_argument("--out", required=True, help="the student's checkpoint (calibrate it afterwards)")
+    p.add_argument("--steps", type=POSITIVE, default=3000, help="Adam steps of 64 situations (default 3000)")
+    p.add_argument("--lr", type=_float_in(0, 1), help="initial learning rate in (0, 1) (default 1e-3, decaying towards 1e-4)")
+    p.add_argument("--init", metavar="STUDENT", help="start from this student's decoder (a `distil` checkpoint of the "
+                                                     "same sizes; default: a new decoder)")
+    p.add_argument("--variant", choices=("cvae-hold",), help="cvae-hold: give a cvae teacher hold modes, switched off, "
+                   "so that the student has a hold head to learn later (from another teacher, with --init)")
+    _add_student_options(p)
+    p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda, cuda:N")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_distil)
+
+
+def _add_student_options(p) -> None:
+    """The student's size and the distillation's data (:class:`~trafficweaving.model.distil.DistilConfig`)."""
+    from ..model.distil import DistilConfig
+
+    d = DistilConfig()
+    p.add_argument("--decoder-units", type=_int_at_least(1, 1024), default=d.decoder_units,
+                   help=f"the student's decoder LSTM units (default {d.decoder_units})")
+    p.add_argument("--components", type=_int_at_least(1, 64), default=d.components,
+                   help=f"the student's GMM components per step (default {d.components})")
+    p.add_argument("--teacher-samples", type=_int_at_least(1, 256), default=d.teacher_samples,
+                   help=f"teacher futures per situation and step (default {d.teacher_samples})")
+    p.add_argument("--perturbed-fraction", type=_float_in(0, 1, include_low=True, include_high=True),
+                   default=d.perturbed_fraction, help="share of situations whose robot future is replaced by a random "
+                                                      f"one (default {d.perturbed_fraction:g})")
+    p.add_argument("--real-weight", type=_float_in(0, 100, include_low=True), default=d.real_weight,
+                   help=f"weight of the recorded actions' exact NLL (default {d.real_weight:g})")
+    p.add_argument("--hold-modes-lr", type=_float_in(0, 1, include_low=True), default=d.hold_lr,
+                   help=f"constant learning rate of the hold modes' logits (default {d.hold_lr:g}; 0: frozen)")
+
+
+def _distil_config(args):
+    from ..model.distil import DistilConfig
+
+    return DistilConfig(decoder_units=args.decoder_units, components=args.components,
+                        teacher_samples=args.teacher_samples, perturbed_fraction=args.perturbed_fraction,
+                        real_weight=args.real_weight, hold_lr=args.hold_modes_lr)
 
 
 def _add_calibration(sub) -> None:
@@ -212,14 +263,22 @@ def cmd_crossval(args) -> None:
     out = check_output_folder(args.out, "--out") if args.out is not None else None
     if args.reference is not None:
         load_model(check_model_spec(args.reference, "--reference"))  # a bad reference fails before the folds train
-    tc = _train_config(args)
+    if args.teacher_folds is not None:
+        from ..model.distil import distil_schedule
+
+        if args.variant is not None:
+            raise InputError("--teacher-folds excludes --variant (the students have their teachers' variant)")
+        tc = distil_schedule(args.steps, args.seed, args.lr, args.validate_every)
+    else:
+        tc = _train_config(args)
     device = choose_device(args.device)
     trials = load_trials(args.data)
     if args.init is not None:
         check_model_spec(args.init, "--init")
     result = crossval(trials, args.folds, tc, variant=args.variant, init=args.init, reference=args.reference,
                       seed=args.seed, device=device, progress=not args.json, log=_log(args),
-                      out=out, beat_reference=args.beat_reference, nested=args.nested, workers=args.workers)
+                      out=out, beat_reference=args.beat_reference, nested=args.nested, workers=args.workers,
+                      teacher_folds=args.teacher_folds, distillation=_distil_config(args))
     summary = result.summary()
     payload = {**summary, "data": args.data, "init": args.init, "variant": args.variant, "out": args.out}
     ref = summary["reference"]
@@ -232,6 +291,26 @@ def cmd_crossval(args) -> None:
     if ref:
         lines.append(f"reference {ref['model']}: " + " ".join(f"{v:.2f}" for v in ref["folds"]) + f"  mean {ref['nll_exact']:.3f}")
     _emit(args, payload, "\n".join(lines))
+
+
+def cmd_distil(args) -> None:
+    from ..data.trials import load_trials
+    from ..model.device import choose_device
+    from ..model.distil import distil, distil_schedule, teacher_model
+    from ..model.registry import load_model
+
+    out = check_output_file(args.out, "--out")
+    device = choose_device(args.device)
+    teacher = teacher_model(check_model_spec(args.teacher, "--teacher"), device, args.variant)
+    init = None if args.init is None else load_model(check_model_spec(args.init, "--init"), device)
+    trials = load_trials(args.data)
+    student = distil(trials, teacher, out, _distil_config(args), distil_schedule(args.steps, args.seed, args.lr),
+                     device=device, progress=not args.json, log=_log(args),
+                     fields={"teacher": args.teacher, "student_init": args.init}, init=init)
+    c = student.config
+    _emit(args, {"out": str(out), "teacher": args.teacher, "decoder_units": c.decoder_units, "components": c.components,
+                 "steps": args.steps},
+          f"distilled {args.teacher} into {c.decoder_units} units, {c.components} components ({args.steps} steps) -> {out}")
 
 
 def cmd_mix(args) -> None:

@@ -47,6 +47,9 @@ def _add_simulate(sub) -> None:
     p.add_argument("--workers", type=POSITIVE, default=1, help=f"episodes run at once (default 1: in this process), "
                    f"at most {WORKERS_PER_CPU} per CPU core here ({WORKERS_PER_CPU * (os.cpu_count() or 1)}), or "
                    f"{MAX_EPISODES} on a Ray cluster")
+    p.add_argument("--threads", type=_int_at_least(1, os.cpu_count() or 1), default=1,
+                   help=f"torch threads of the episodes run in this process (--workers 1), 1..{os.cpu_count() or 1} "
+                        f"(default 1; e.g. 2 for the full budget in real time on two cores, docs/planner.md)")
     p.add_argument("--engine", choices=("local", "ray"), default="local",
                    help="local: a process pool; ray: Ray tasks (pip install 'trafficweaving[ray]')")
     p.add_argument("--address", help=f"with --engine ray: the Ray cluster to join, {RAY_ADDRESS_FORMS}, its head "
@@ -98,7 +101,7 @@ def cmd_simulate(args) -> None:
     summary = simulate(args.episodes, args.robot, args.human, seed=args.seed, workers=args.workers,
                        engine=args.engine, address=args.address, out=args.out,
                        model=check_model_spec(args.model, "--model"), deadline=args.deadline, device=args.device,
-                       precision=args.precision, progress=not args.json)
+                       precision=args.precision, progress=not args.json, threads=args.threads)
     _emit(args, summary, summary_table(summary))
 
 

@@ -31,6 +31,7 @@ from ..errors import InputError
 from ..scenario import MIN_TRIAL_STEPS
 from .checkpoint import load_checkpoint, save_checkpoint
 from .cvae import CVAE, CVAEConfig
+from .distil import DistilConfig, distil, teacher_model
 from .evaluate import evaluate
 from .exemplars import build_exemplars
 from .mixture import Mixture
@@ -151,8 +152,9 @@ class _Fit:
 
 
 def _fit(trials: TrialSet, parts: list[np.ndarray], held: tuple[int, ...], tc: TrainConfig, variant, init, device,
-         keep_weights: bool, progress: bool, log) -> _Fit:
-    """Train on every fold of ``parts`` but ``held`` and score each held fold along the way."""
+         keep_weights: bool, distillation: tuple[Path, DistilConfig] | None, progress: bool, log) -> _Fit:
+    """Train on every fold of ``parts`` but ``held`` and score each held fold along the way; with
+    ``distillation``, distil instead the teacher trained without the same folds (:func:`teacher_file`)."""
     train_idx = np.sort(np.concatenate([p for i, p in enumerate(parts) if i not in held]))
     held_sets = {f: build_exemplars(trials.subset(parts[f])) for f in held}
     scores = {f: [] for f in held}
@@ -167,12 +169,43 @@ def _fit(trials: TrialSet, parts: list[np.ndarray], held: tuple[int, ...], tc: T
         if keep_weights:
             weights[step] = _cpu_copy(model)
 
+    if distillation is not None:
+        folder, dc = distillation
+        teacher = teacher_model(str(teacher_file(folder, held)), device)
+        start = None if init is None else load_model(str(init), device)
+        distil(trials.subset(train_idx), teacher, dc=dc, tc=tc, device=device, progress=bool(progress), log=log,
+               on_validate=record, init=start)
+        return _Fit(held, steps, {f: np.array(v) for f, v in scores.items()}, weights, config[0])
     if init is not None:
         record(0, initial_model(init, variant, tc.robot_future)[0].to(device))  # as fine-tuning starts
     # no validation set of train's own: record() scores each held fold at the validation steps
     train(trials.subset(train_idx), None, variant, replace(tc, validation_fraction=0.0), device=device,
           progress=bool(progress), log=log, init=init, on_validate=record)
     return _Fit(held, steps, {f: np.array(v) for f, v in scores.items()}, weights, config[0])
+
+
+def teacher_file(folder: Path, held: tuple[int, ...]) -> Path:
+    """The teacher of the fit without folds ``held`` (0-based), in a folder written by ``crossval
+    --nested --out``: the model trained without the same folds, ``nested/fold_K.pt`` (held fold K,
+    at the steps chosen without it) or ``nested/fold_I/fold_J.pt`` (held folds I and J)."""
+    names = [f"fold_{k + 1}" for k in held]
+    return folder.joinpath("nested", *names[:-1], names[-1] + ".pt")
+
+
+def check_teachers(folder: Path, ids: list[list[int]], helds: list[tuple[int, ...]]) -> None:
+    """Refuse a teacher folder whose models do not hold out exactly the folds each fit holds out
+    (``ids``: the trial ids of each fold): a teacher that trained on a fold would leak it into the
+    student's score."""
+    for held in helds:
+        path = teacher_file(folder, held)
+        if not path.is_file():
+            raise InputError(f"--teacher-folds {folder}: no {path.relative_to(folder)} (expected a folder written by "
+                             f"`trafficweaving crossval --nested --out` with the same --folds and --seed)")
+        _, payload = load_checkpoint(path)
+        if sorted(payload.get("held_out_trials", [])) != sorted(ids[held[-1]]) or (
+                len(held) == 2 and payload.get("crossval", {}).get("outer_fold") != held[0] + 1):
+            raise InputError(f"{path}: holds out other trials than fold {held[-1] + 1} of this cross-validation (expected "
+                             f"teachers cross-validated on the same data with the same --folds and --seed)")
 
 
 def _fit_job(job: tuple) -> _Fit:
@@ -185,7 +218,8 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
              init: str | Path | None = None, reference: str | None = None, seed: int = 0,
              device: torch.device | str = "cpu", progress: bool = True,
              log: Callable[[str], None] = print, out: str | Path | None = None,
-             beat_reference: bool = False, nested: bool = False, workers: int = 1) -> CrossvalResult:
+             beat_reference: bool = False, nested: bool = False, workers: int = 1,
+             teacher_folds: str | Path | None = None, distillation: DistilConfig = DistilConfig()) -> CrossvalResult:
     """Cross-validate training ``variant`` from scratch, or fine-tuning ``init``, with schedule
     ``tc`` (its ``steps`` is the longest schedule tried; the held-out folds are scored every
     ``validate_every`` steps, and at step 0 when fine-tuning). Folds are by trial, seeded. With
@@ -194,7 +228,12 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
     without each pair of folds {i, j}: the inner cross-validation of outer fold i (its inner folds
     are the other outer folds) chooses fold i's steps, so the nested estimate involves no choice
     made on the fold it scores; ``out`` then also gets ``nested/`` (:func:`_save_fold_models`).
-    ``workers`` > 1 runs the fits in that many processes."""
+    ``workers`` > 1 runs the fits in that many processes. With ``teacher_folds`` (a folder of a
+    nested cross-validation with the same folds, :func:`teacher_file`), each fit distils the teacher
+    that was trained without the same folds into a student of ``distillation``'s size
+    (:func:`~trafficweaving.model.distil.distil`, ``tc`` from
+    :func:`~trafficweaving.model.distil.distil_schedule`; ``init``: the student whose decoder each
+    starts from), so no fold is scored by a model whose teacher saw it."""
     if beat_reference and reference is None:
         raise InputError("--beat-reference needs a --reference model to beat")
     if folds < 2 or (nested and folds < 3) or folds > MAX_FOLDS:
@@ -219,7 +258,11 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
     tc = replace(tc, validation_exemplars=10**9, patience=0)
     helds = [(k,) for k in range(folds)] + (list(itertools.combinations(range(folds), 2)) if nested else [])
     keep = out is not None
-    jobs = [(trials, parts, held, tc, variant, init, device, keep) for held in helds]
+    teaching = None
+    if teacher_folds is not None:
+        check_teachers(Path(teacher_folds), [[int(i) for i in trials.trial_ids[p]] for p in parts], helds)
+        teaching = (Path(teacher_folds), distillation)
+    jobs = [(trials, parts, held, tc, variant, init, device, keep, teaching) for held in helds]
     fits = []
     if workers > 1:
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:

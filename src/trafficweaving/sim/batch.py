@@ -252,8 +252,9 @@ def _init_worker() -> None:
     tqdm.set_lock(threading.RLock())
 
 
-def _run_inline(spec: EpisodeSpec, agents: tuple, indices: list[int], done: Callable[[Episode], None]) -> None:
-    with _torch_threads(1):
+def _run_inline(spec: EpisodeSpec, agents: tuple, indices: list[int], done: Callable[[Episode], None],
+                threads: int = 1) -> None:
+    with _torch_threads(threads):
         for index in indices:
             try:
                 episode = run_episode(spec, index, agents)
@@ -329,11 +330,13 @@ def _run_ray(spec: EpisodeSpec, indices: list[int], workers: int, address: str |
 def simulate(episodes: int, robot: str, human: str, seed: int = 0, workers: int = 1, engine: str = "local",
              address: str | None = None, out: str | Path = "simulate", model: str = "default",
              deadline: float | None = None, budget: Budget | None = None, device: str = "cpu",
-             precision: str = "auto", progress: bool = False) -> dict:
+             precision: str = "auto", progress: bool = False, threads: int = 1) -> dict:
     """Run (or resume) episodes ``0..episodes-1`` of robot ``robot`` against human ``human`` and
     return the summary written to ``out/summary.json`` (module docstring; keys of
     :func:`~.metrics.aggregate`, plus ``computed`` and ``reused`` episode counts, the settings and
-    ``seconds``). ``progress``: a tqdm bar on stderr.
+    ``seconds``). ``progress``: a tqdm bar on stderr. ``threads``: the torch threads of episodes
+    run in this process (``workers`` 1; a worker process runs one), e.g. 2 for a planner that has
+    the machine's two cores to itself.
 
     Every argument is checked before an episode runs (InputError: ``episodes`` in
     1..:data:`MAX_EPISODES`, ``workers`` in 1..:func:`max_workers`, seed 0..2³²−1, the engine, Ray
@@ -354,6 +357,10 @@ def simulate(episodes: int, robot: str, human: str, seed: int = 0, workers: int 
     if address is not None and engine != "ray":
         raise InputError(f"address {address!r} applies only to the ray engine (expected engine 'ray' or no address)")
     workers = validate.integer("workers", workers, 1, max_workers(engine, address))
+    threads = validate.thread_count("threads", threads)
+    if threads > 1 and (workers > 1 or engine == "ray"):
+        raise InputError(f"threads {threads} applies to episodes run in this process (expected workers 1 and the local "
+                         f"engine; a worker runs one thread)")
     out = _check_outputs(out, episodes)
     device = str(choose_device(device))
     spec = EpisodeSpec(robot, human, seed, model, None if deadline is None else float(deadline), budget, device, precision)
@@ -385,12 +392,12 @@ def simulate(episodes: int, robot: str, human: str, seed: int = 0, workers: int 
         elif todo and min(workers, len(todo)) > 1:
             _run_pool(spec, todo, min(workers, len(todo)), done)
         else:
-            _run_inline(spec, agents, todo, done)
+            _run_inline(spec, agents, todo, done, threads)
     finally:
         bar.close()
 
     summary = {**aggregate([records[index] for index in range(episodes)]), "computed": len(todo),
-               "reused": episodes - len(todo), **spec.as_dict(), "engine": engine, "workers": workers,
+               "reused": episodes - len(todo), **spec.as_dict(), "engine": engine, "workers": workers, "threads": threads,
                "out": str(out), "seconds": time.perf_counter() - began}
     with atomic_write(out / "summary.json") as f:
         f.write(json.dumps(summary, indent=2, allow_nan=False).encode())
