@@ -28,6 +28,7 @@ bench: install
 	$(PY) benchmarks/bench_generate.py
 	$(PY) benchmarks/bench_train.py
 	$(PY) benchmarks/bench_plan.py
+	$(PY) benchmarks/bench_chunks.py
 	$(PY) benchmarks/bench_drive.py
 
 drive: install

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from trafficweaving.model.cvae import CVAE, CVAEConfig
-from trafficweaving.model.sampler import BatchedRollout
+from trafficweaving.model.sampler import MIN_CHUNK_ROWS, BatchedRollout, chunk_rows_for
 
 
 @pytest.mark.parametrize("variant, calibration", [("cvae", None), ("mixture-lstm", None), ("lstm", None),
@@ -30,3 +30,19 @@ def test_fast_sampler_equals_the_models_sampling_given_the_same_random_numbers(v
         robot_inputs = torch.cat([history[-1, :6].expand(6, 1, -1), futures[:, :-1]], 1)
         reference = model.sample_actions(zx, robot_inputs, present.expand(6, -1), noise=noise)
     torch.testing.assert_close(ours, reference, rtol=0, atol=1e-10)
+
+
+def test_chunks_grow_for_narrow_decoders_and_are_the_same_samples():
+    assert chunk_rows_for(128) == MIN_CHUNK_ROWS  # the paper's decoder
+    assert chunk_rows_for(32) == 2 * MIN_CHUNK_ROWS and chunk_rows_for(512) == MIN_CHUNK_ROWS
+    torch.manual_seed(0)
+    model = CVAE(CVAEConfig.variant("cvae-hold", decoder_units=32)).double().eval()
+    assert BatchedRollout(model).chunk_rows == chunk_rows_for(32)
+    history, futures, present = torch.randn(9, 12, dtype=torch.float64), torch.randn(3, 15, 6, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
+    samples = []
+    for chunk_rows in (None, 7):
+        rollout = BatchedRollout(model, chunk_rows=chunk_rows)
+        context = rollout.encode(history, futures, present)
+        samples.append(rollout.sample(context, rollout.sample_latents(context, 5, torch.Generator().manual_seed(1)),
+                                      generator=torch.Generator().manual_seed(2)))
+    torch.testing.assert_close(samples[0], samples[1], rtol=0, atol=1e-12)

@@ -95,7 +95,8 @@ class HumanPredictor:
     measures the planner's decisions); ``auto`` is bfloat16 where native; ``int8`` (CPU only)
     quantises the hidden state and runs the decoder's steps fused and compiled
     (:mod:`~trafficweaving.model.fused_decoder`; the first plan compiles for about 15 s).
-    ``chunk_rows``: decoder rows per chunk (the working set stays in cache).
+    ``chunk_rows``: decoder rows per chunk, so that the working set stays in cache (None: by the
+    decoder's width, :func:`~trafficweaving.model.sampler.chunk_rows_for`).
     ``common_random_numbers``: sample ``i`` of every candidate is drawn with the same random numbers
     (latent noise, output uniforms and normals): each candidate's futures keep their distribution,
     and the candidates' sampled costs are compared in pairs, with less noise in their differences
@@ -104,7 +105,7 @@ class HumanPredictor:
     :attr:`device` and :attr:`dtype` are the model's; tensors returned live there.
     """
 
-    def __init__(self, model: CVAE | Mixture, precision: str = "float32", chunk_rows: int = 2048,
+    def __init__(self, model: CVAE | Mixture, precision: str = "float32", chunk_rows: int | None = None,
                  common_random_numbers: bool = True):
         if model.config.robot_future != "recorded":
             raise InputError(f"the model is conditioned on a {model.config.robot_future} of the robot's future (a driver "
@@ -114,7 +115,8 @@ class HumanPredictor:
         weights = next(model.parameters())
         self.device, self.dtype = weights.device, weights.dtype
         matmul_dtype = resolve_precision(precision, self.device) if self.dtype == torch.float32 else self.dtype
-        self.rollout = rollout(model, validate.integer("chunk_rows", chunk_rows, 1), matmul_dtype)
+        chunk_rows = None if chunk_rows is None else validate.integer("chunk_rows", chunk_rows, 1)
+        self.rollout = rollout(model, chunk_rows, matmul_dtype)
         self.context: dict | None = None
         self.candidates = 0
         self.common_random_numbers = bool(common_random_numbers)
