@@ -263,17 +263,7 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
         check_teachers(Path(teacher_folds), [[int(i) for i in trials.trial_ids[p]] for p in parts], helds)
         teaching = (Path(teacher_folds), distillation)
     jobs = [(trials, parts, held, tc, variant, init, device, keep, teaching) for held in helds]
-    fits = []
-    if workers > 1:
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            for fit in pool.map(_fit_job, jobs):
-                fits.append(fit)
-                log(_fit_line(fit, folds))
-    else:
-        for job in jobs:
-            log(f"fitting without fold{'s' if len(job[2]) > 1 else ''} {', '.join(str(f + 1) for f in job[2])}")
-            fits.append(_fit(*job, progress=progress, log=log))
-            log(_fit_line(fits[-1], folds))
+    fits = _run_fits(jobs, folds, workers, progress, log)
     steps = np.array(fits[0].steps)
     outer = {fit.held[0]: fit for fit in fits if len(fit.held) == 1}
     curves = np.array([outer[k].scores[k][:, 0] for k in range(folds)])
@@ -296,6 +286,23 @@ def crossval(trials: TrialSet, folds: int = 5, tc: TrainConfig = TrainConfig(), 
     if out is not None:
         _save_fold_models(Path(out), result, fits, trials)
     return result
+
+
+def _run_fits(jobs: list[tuple], folds: int, workers: int, progress: bool, log: Callable[[str], None]) -> list[_Fit]:
+    """The fits of ``jobs`` (arguments of :func:`_fit`), in order: in ``workers`` processes when
+    more than one, each logged as it ends."""
+    fits = []
+    if workers > 1:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            for fit in pool.map(_fit_job, jobs):
+                fits.append(fit)
+                log(_fit_line(fit, folds))
+        return fits
+    for job in jobs:
+        log(f"fitting without fold{'s' if len(job[2]) > 1 else ''} {', '.join(str(f + 1) for f in job[2])}")
+        fits.append(_fit(*job, progress=progress, log=log))
+        log(_fit_line(fits[-1], folds))
+    return fits
 
 
 def _fit_line(fit: _Fit, folds: int) -> str:
