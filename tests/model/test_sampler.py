@@ -38,7 +38,8 @@ def test_chunks_grow_for_narrow_decoders_and_are_the_same_samples():
     torch.manual_seed(0)
     model = CVAE(CVAEConfig.variant("cvae-hold", decoder_units=32)).double().eval()
     assert BatchedRollout(model).chunk_rows == chunk_rows_for(32)
-    history, futures, present = torch.randn(9, 12, dtype=torch.float64), torch.randn(3, 15, 6, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
+    history, futures = torch.randn(9, 12, dtype=torch.float64), torch.randn(3, 15, 6, dtype=torch.float64)
+    present = torch.zeros(2, dtype=torch.float64)
     samples = []
     for chunk_rows in (None, 7):
         rollout = BatchedRollout(model, chunk_rows=chunk_rows)
