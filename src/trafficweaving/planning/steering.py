@@ -31,34 +31,40 @@ T_BOUNDS = (1e-3, 60.0)  # s: search range for the free final time
 _GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
 
 
-def _gramian(T: np.ndarray) -> np.ndarray:
-    """Controllability Gramian ``[..., 3, 3]`` of the triple integrator over ``T [...]`` s."""
-    T2, T3 = T * T, T * T * T
-    rows = [[T3 * T2 / 20, T2 * T2 / 8, T3 / 6], [T2 * T2 / 8, T3 / 3, T2 / 2], [T3 / 6, T2 / 2, T]]
-    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
-
-
-def _drift_gap(state: np.ndarray, target: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """``d = [target, 0, 0] - e^{AT} state`` ``[..., 3]`` for ``state [..., 3]`` (y, yd, ydd)."""
+def _drift_gap(state: np.ndarray, target: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The components of ``d = [target, 0, 0] - e^{AT} state`` (each ``[...]``) for ``state [..., 3]``
+    (y, yd, ydd)."""
     y, v, a = state[..., 0], state[..., 1], state[..., 2]
-    return np.stack([target - (y + v * T + a * T * T / 2), -(v + a * T), -a], axis=-1)
+    return target - (y + v * T + a * T * T / 2), -(v + a * T), -a
 
 
 def _coefficients(state: np.ndarray, target: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """``G(T)⁻¹ d(T)`` ``[..., 3]``: the optimal jerk is ``b(T - t) · coefficients``."""
-    return np.linalg.solve(_gramian(T), _drift_gap(state, target, T)[..., None])[..., 0]
+    """``G(T)⁻¹ d(T)`` ``[..., 3]``: the optimal jerk is ``b(T - t) · coefficients``. ``G`` is the
+    controllability Gramian of the triple integrator over ``T [...]`` s, ``[[T⁵/20, T⁴/8, T³/6],
+    [T⁴/8, T³/3, T²/2], [T³/6, T²/2, T]]``, whose inverse is written out: ``[[720/T⁵, −360/T⁴,
+    60/T³], [−360/T⁴, 192/T³, −36/T²], [60/T³, −36/T², 9/T]]``."""
+    d0, d1, d2 = _drift_gap(state, target, T)
+    r = 1.0 / T
+    return np.stack([r**3 * (r * (r * 720.0 * d0 - 360.0 * d1) + 60.0 * d2),
+                     r**2 * (r * (-r * 360.0 * d0 + 192.0 * d1) - 36.0 * d2),
+                     r * (r * (r * 60.0 * d0 - 36.0 * d1) + 9.0 * d2)], axis=-1)
 
 
 def steering_cost(state: np.ndarray, target: np.ndarray, T: np.ndarray, weight: float = JERK_WEIGHT) -> np.ndarray:
-    """``J(T) = T + (1/ρ) ∫ u² dt`` of the minimum-energy steering with final time ``T`` (s), ρ = ``weight``."""
-    d = _drift_gap(state, target, T)
-    return T + np.einsum("...i,...i->...", d, _coefficients(state, target, T)) / weight
+    """``J(T) = T + (1/ρ) ∫ u² dt`` of the minimum-energy steering with final time ``T`` (s), ρ = ``weight``:
+    ``∫ u² dt = dᵀ G⁻¹ d`` (:func:`_coefficients`), written out as a polynomial in ``1/T``."""
+    d0, d1, d2 = _drift_gap(state, target, T)
+    r = 1.0 / T
+    energy = r * (9.0 * d2 * d2 + r * (-72.0 * d1 * d2 + r * (192.0 * d1 * d1 + 120.0 * d0 * d2
+                                                             + r * (-720.0 * d0 * d1 + r * 720.0 * d0 * d0))))
+    return T + energy / weight
 
 
 def optimal_time(state: np.ndarray, target: np.ndarray, iterations: int = 50, weight: float = JERK_WEIGHT,
                  min_time: float = T_BOUNDS[0]) -> np.ndarray:
     """Free final time ``T* [...]`` (s, at least ``min_time``) minimising :func:`steering_cost` with
-    ρ = ``weight``; 0 where the state is already at the target. ``state [..., 3]``, ``target [...]`` (m)."""
+    ρ = ``weight``; 0 where the state is already at the target. ``state [..., 3]``, ``target [...]`` (m).
+    Golden-section search on ``log T``: one new point, and one evaluation of the cost, per iteration."""
     state, target = np.asarray(state, float), np.asarray(target, float)
     lo = np.full(target.shape, np.log(max(min_time, T_BOUNDS[0])))
     hi = np.full(target.shape, np.log(T_BOUNDS[1]))
@@ -66,13 +72,14 @@ def optimal_time(state: np.ndarray, target: np.ndarray, iterations: int = 50, we
     a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
     fa, fb = cost(a), cost(b)
     for _ in range(iterations):
-        left = fa < fb
+        left = fa < fb  # the minimum lies in [lo, b]: b becomes the upper bound and a the inner point
         hi, lo = np.where(left, b, hi), np.where(left, lo, a)
-        b_new, a_new = np.where(left, a, lo + _GOLDEN * (hi - lo)), np.where(left, hi - _GOLDEN * (hi - lo), b)
-        a, b = a_new, b_new
-        fa, fb = np.where(left, cost(a), fb), np.where(left, fa, cost(b))
+        new = np.where(left, hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo))
+        f_new = cost(new)
+        a, b = np.where(left, new, b), np.where(left, a, new)
+        fa, fb = np.where(left, f_new, fb), np.where(left, fa, f_new)
     T = np.exp((lo + hi) / 2)
-    at_target = np.all(np.abs(_drift_gap(state, target, np.zeros_like(target))) < 1e-9, axis=-1)
+    at_target = np.all(np.abs(np.stack(_drift_gap(state, target, np.zeros_like(target)), -1)) < 1e-9, axis=-1)
     return np.where(at_target, 0.0, T)
 
 
