@@ -1,4 +1,5 @@
-"""The human predictor (model/predictor.py): int8 precision, its planning protocol, common random numbers."""
+"""The human predictor (model/predictor.py): the int8 and float32-compiled precisions, its planning protocol,
+common random numbers."""
 
 import numpy as np
 import pytest
@@ -41,6 +42,26 @@ def test_int8_precision_compiles_and_samples_what_float32_samples_to_quantisatio
     assert agree.mean() > 0.99 and agree[:, :, :5].mean() > 0.998
     with pytest.raises(InputError, match="CPU only"):
         resolve_precision("int8", "cuda")
+
+
+@pytest.mark.slow
+def test_float32_compiled_precision_samples_what_float32_samples_to_rounding():
+    """precision float32-compiled (the fused, compiled steps with float32 weights and the rational
+    sigmoid) draws the futures float32 draws from the same random numbers: the same latent values,
+    the first step's actions to rounding, and, but for rare draws on a mixture component's boundary,
+    every step."""
+    model = load_model("fast")
+    history = example_history()
+    futures = robot_candidates(history[-1, 0], 0).states[:64]
+    compiled = HumanPredictor(model, precision="float32-compiled")
+    assert compiled.precision == "float32-compiled" and compiled.rollout.fused is not None
+    a, b = HumanPredictor(model, precision="float32").predict(history, futures, n=8, seed=3), compiled.predict(history, futures, n=8, seed=3)
+    assert torch.equal(a.latents, b.latents)
+    torch.testing.assert_close(b.actions[:, :, 0], a.actions[:, :, 0], rtol=0, atol=1e-4)  # m/s²
+    agree = ((a.actions - b.actions).abs() <= 1e-3).all(-1).float()  # [n, B, 15]
+    assert agree.mean() > 0.99
+    with pytest.raises(InputError, match="CPU only"):
+        resolve_precision("float32-compiled", "cuda")
 
 
 def test_the_predictors_one_shot_prediction_is_its_planning_protocol():

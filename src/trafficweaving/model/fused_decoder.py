@@ -1,6 +1,7 @@
-"""The decoder's sampling step as one fused, compiled function with int8 matrix multiplies: the
-planner's ``precision="int8"`` (:class:`~trafficweaving.model.predictor.HumanPredictor`), the
-fastest way to sample the paper's 98,304 human futures per plan on a CPU (docs/planner.md, Speed).
+"""The decoder's sampling step as one fused, compiled function, with int8 or float32 matrix
+multiplies: the planner's ``precision="int8"`` and ``"float32-compiled"``
+(:class:`~trafficweaving.model.predictor.HumanPredictor`), the fastest ways to sample the paper's
+98,304 human futures per plan on a CPU, with and without int8 dot products (docs/planner.md, Speed).
 
 Same distribution as :class:`~trafficweaving.model.sampler.BatchedRollout` (given the same random
 numbers and float weights it returns the same samples, to rounding), reorganised for a compiler:
@@ -15,11 +16,11 @@ numbers and float weights it returns the same samples, to rounding), reorganised
   operation over contiguous rows, written out over the 4 modes and the ``M`` components, and
   ``torch.compile`` (Inductor) fuses a step's gate, cell and sampling arithmetic into two vectorised
   loops, its multiply-adds contracted to FMAs;
-* the hidden state ``h`` lies in (−1, 1), so it is quantised to int8 at the fixed scale 1/127 and
-  the two hidden-state matrix multiplies (gates and output head) run on int8 weights quantised per
-  output, accumulating in int32 (``torch._int_mm``: VNNI instructions on x86 CPUs); the sigmoids
-  are a float32-accurate rational function (:func:`rational_sigmoid`); the action inputs and all
-  state, gate and sampling arithmetic stay float32.
+* with int8 weights, the hidden state ``h`` (in (−1, 1)) is quantised to int8 at the fixed scale
+  1/127 and the two hidden-state matrix multiplies (gates and output head) run on int8 weights
+  quantised per output, accumulating in int32 (``torch._int_mm``: VNNI instructions on x86 CPUs);
+  the action inputs and all state, gate and sampling arithmetic stay float32;
+* in float32 the sigmoids are a float32-accurate rational function (:func:`rational_sigmoid`).
 
 The inverse CDFs compare cumulative *unnormalised* weights with ``u·Σw`` (the model's own sampling
 normalises first: equal up to rounding).
@@ -141,9 +142,9 @@ def decode_step(c: torch.Tensor, h: torch.Tensor, action: torch.Tensor, local: t
     ``w_action [2, 4u]``, ``w_head [H, u]`` (int8 with ``head_scale [H, 1]``, or float) and
     ``head_bias [H, 1]``, head rows ``[modes, log π (M), (μx, μy, log σx, log σy, ρ) per
     component]``; ``output_scale [2]`` (calibration), ``hold_sigma [2]`` (hold widths; unused
-    without ``modes``). With int8 weights the sigmoids are :func:`rational_sigmoid`."""
+    without ``modes``). In float32 the sigmoids are :func:`rational_sigmoid` (in float64, exact)."""
     units, hidden = c.shape[1], _hidden_product(h, w_hidden, hidden_scale)
-    sigmoid = rational_sigmoid if w_hidden.dtype == torch.int8 else torch.sigmoid
+    sigmoid = rational_sigmoid if c.dtype == torch.float32 else torch.sigmoid
     constant = candidate_gates[local] + latent_gates[z]  # gathered inside the step's loop
 
     def gate(block: int) -> torch.Tensor:  # sliced before the sigmoid: one loop computes a unit's gates and state

@@ -23,8 +23,13 @@ from .cvae import ACCEL, CVAE, STATE_DIM
 from .mixture import Mixture
 from .sampler import rollout
 
-PRECISIONS = ("auto", "float32", "bfloat16", "int8")
+PRECISIONS = ("auto", "float32", "bfloat16", "int8", "float32-compiled")
 """Choices of :func:`resolve_precision`."""
+MATMUL_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "int8": torch.int8,
+                 "float32-compiled": torch.float32}
+"""The dtype of the decoder's matrix multiplies for each precision but ``auto``."""
+COMPILED_PRECISIONS = ("int8", "float32-compiled")
+"""Precisions that run the decoder's steps fused and compiled (:mod:`~trafficweaving.model.fused_decoder`)."""
 MAX_PLAN_FUTURES = 2**21
 """Most human futures one plan may sample (``bench plan``'s budget options): each holds about 1.7 kB
 while the plan scores them (measured at the paper's budget and 8 times its second stage), so at
@@ -60,16 +65,17 @@ def cpu_matrix_features() -> dict:
             "amx": bool(flags & {"amx_bf16", "amx_int8", "amx_tile"})}
 
 
-def resolve_precision(precision: str, device: torch.device | str = "cpu") -> torch.dtype:
-    """The dtype of the decoder's matrix multiplies for ``precision`` (one of :data:`PRECISIONS`):
-    ``auto`` is bfloat16 on CPUs with native bfloat16 (:func:`native_bfloat16`), else float32."""
+def resolve_precision(precision: str, device: torch.device | str = "cpu") -> str:
+    """The precision that ``precision`` (one of :data:`PRECISIONS`) runs in: ``auto`` is bfloat16 on
+    CPUs with native bfloat16 (:func:`native_bfloat16`), else float32."""
     if precision not in PRECISIONS:
         raise InputError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     if precision == "auto":
-        return torch.bfloat16 if native_bfloat16(device) else torch.float32
-    if precision == "int8" and torch.device(device).type != "cpu":
-        raise InputError(f"precision int8 runs on the CPU only, the model is on {device} (expected auto, float32 or bfloat16)")
-    return {"float32": torch.float32, "bfloat16": torch.bfloat16, "int8": torch.int8}[precision]
+        return "bfloat16" if native_bfloat16(device) else "float32"
+    if precision in COMPILED_PRECISIONS and torch.device(device).type != "cpu":
+        raise InputError(f"precision {precision} runs on the CPU only, the model is on {device} (expected auto, "
+                         f"float32 or bfloat16)")
+    return precision
 
 
 @dataclass
@@ -94,7 +100,10 @@ class HumanPredictor:
     twice as fast on CPUs with native bfloat16, with slightly different numbers (docs/planner.md
     measures the planner's decisions); ``auto`` is bfloat16 where native; ``int8`` (CPU only)
     quantises the hidden state and runs the decoder's steps fused and compiled
-    (:mod:`~trafficweaving.model.fused_decoder`; the first plan compiles for about 15 s).
+    (:mod:`~trafficweaving.model.fused_decoder`; the first plan compiles for about 15 s);
+    ``float32-compiled`` (CPU only) runs the same fused, compiled steps with float32 weights: the
+    same samples as ``float32`` to rounding, and the fastest on CPUs without int8 dot products
+    (docs/planner.md, Speed).
     ``chunk_rows``: decoder rows per chunk, so that the working set stays in cache (None: by the
     decoder's width, :func:`~trafficweaving.model.sampler.chunk_rows_for`).
     ``common_random_numbers``: sample ``i`` of every candidate is drawn with the same random numbers
@@ -114,17 +123,22 @@ class HumanPredictor:
         self.model = model.eval()
         weights = next(model.parameters())
         self.device, self.dtype = weights.device, weights.dtype
-        matmul_dtype = resolve_precision(precision, self.device) if self.dtype == torch.float32 else self.dtype
+        if self.dtype == torch.float32:
+            self._precision = resolve_precision(precision, self.device)
+            matmul_dtype, fused = MATMUL_DTYPES[self._precision], self._precision in COMPILED_PRECISIONS
+        else:
+            self._precision, matmul_dtype, fused = str(self.dtype).removeprefix("torch."), self.dtype, False
         chunk_rows = None if chunk_rows is None else validate.integer("chunk_rows", chunk_rows, 1)
-        self.rollout = rollout(model, chunk_rows, matmul_dtype)
+        self.rollout = rollout(model, chunk_rows, matmul_dtype, fused)
         self.context: dict | None = None
         self.candidates = 0
         self.common_random_numbers = bool(common_random_numbers)
 
     @property
     def precision(self) -> str:
-        """The dtype of the decoder's matrix multiplies, e.g. ``"bfloat16"``."""
-        return str(self.rollout.matmul_dtype).removeprefix("torch.")
+        """The precision it samples in (:data:`PRECISIONS`, ``auto`` resolved; a float64 model's
+        ``"float64"``), e.g. ``"bfloat16"``."""
+        return self._precision
 
     def prepare(self, history, robot_futures) -> None:
         """Encode one situation for :meth:`sample`: ``history [t+1, 2, 6]`` states ``[x, y, xd, yd,

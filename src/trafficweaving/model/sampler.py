@@ -19,7 +19,7 @@ the same samples, to rounding), reorganised for throughput:
   (:func:`~trafficweaving.model.gmm.split_uniform`), exactly as the model's own sampling does;
 * rows run in cache-sized chunks (:func:`chunk_rows_for`).
 
-With int8 matrix multiplies (``matmul_dtype=torch.int8``) the steps run in
+With ``fused`` (always with int8 matrix multiplies) the steps run in
 :mod:`~trafficweaving.model.fused_decoder` instead: fused and compiled.
 """
 
@@ -82,11 +82,13 @@ class BatchedRollout:
     Use :meth:`encode` once per history and candidate set, then :meth:`sample_latents` and
     :meth:`sample` (possibly several times, e.g. for the two planning stages on subsets of
     candidates). ``matmul_dtype``: the dtype of the decoder's matrix multiplies (default: the
-    model's; bfloat16 keeps the state and gate arithmetic in the model's dtype; int8 runs the
-    steps in :class:`~trafficweaving.model.fused_decoder.FusedDecoder`).
+    model's; bfloat16 keeps the state and gate arithmetic in the model's dtype); ``fused``: the
+    steps run in :class:`~trafficweaving.model.fused_decoder.FusedDecoder` (fused and compiled;
+    always with int8).
     """
 
-    def __init__(self, model: CVAE, chunk_rows: int | None = None, matmul_dtype: torch.dtype | None = None):
+    def __init__(self, model: CVAE, chunk_rows: int | None = None, matmul_dtype: torch.dtype | None = None,
+                 fused: bool = False):
         m, c = model.eval(), model.config
         self.model, self.chunk_rows = m, chunk_rows_for(c.decoder_units) if chunk_rows is None else chunk_rows
         self.matmul_dtype = matmul_dtype or next(model.parameters()).dtype
@@ -124,10 +126,12 @@ class BatchedRollout:
             self.output_scale = m.output_scale.detach().clone()  # [2]: x, y
             self.latent_gates = m.latent_onehots @ self.w_gate_z  # [Z, 4u]
             self.latent_init = m.latent_onehots @ self.w_init_z  # [Z, 2u]
-            # int8: the fused, compiled steps of fused_decoder.py hold their own (quantised) weights
+            # the fused, compiled steps of fused_decoder.py hold their own (with int8: quantised) weights
+            quantize = self.matmul_dtype == torch.int8
             self.fused = (FusedDecoder(self.w_step, self.latent_gates, self.latent_init, head, self.head_bias,
-                                       self.output_scale, self.hold_sigma if c.hold else None, self.modes, m_count)
-                          if self.matmul_dtype == torch.int8 else None)
+                                       self.output_scale, self.hold_sigma if c.hold else None, self.modes, m_count,
+                                       quantize=quantize)
+                          if fused or quantize else None)
             if self.fused is None:
                 self.w_head = head.contiguous().to(self.matmul_dtype)
                 self.head_bias = self.head_bias.to(self.matmul_dtype)
@@ -248,9 +252,10 @@ class MixtureRollout:
     methods: a latent value is a (component, latent value) pair (the mixture's joint latent), each
     row decoded by its component's rollout."""
 
-    def __init__(self, mixture: Mixture, chunk_rows: int | None = None, matmul_dtype: torch.dtype | None = None):
+    def __init__(self, mixture: Mixture, chunk_rows: int | None = None, matmul_dtype: torch.dtype | None = None,
+                 fused: bool = False):
         self.model = mixture.eval()
-        self.parts = [BatchedRollout(c, chunk_rows, matmul_dtype) for c in mixture.components]
+        self.parts = [BatchedRollout(c, chunk_rows, matmul_dtype, fused) for c in mixture.components]
         self.matmul_dtype = self.parts[0].matmul_dtype
         self.offsets = mixture.latent_offsets
 
@@ -287,9 +292,11 @@ class MixtureRollout:
         return out.view(n, c_count, HORIZON, 2)
 
 
-def rollout(model: CVAE | Mixture, chunk_rows: int | None = None, matmul_dtype: torch.dtype | None = None):
+def rollout(model: CVAE | Mixture, chunk_rows: int | None = None, matmul_dtype: torch.dtype | None = None,
+            fused: bool = False):
     """The batched rollout of ``model``: :class:`BatchedRollout` or, for a mixture, :class:`MixtureRollout`
-    (``chunk_rows``: decoder rows per chunk; None: :func:`chunk_rows_for` the decoder's units)."""
+    (``chunk_rows``: decoder rows per chunk; None: :func:`chunk_rows_for` the decoder's units;
+    ``matmul_dtype`` and ``fused`` as :class:`BatchedRollout`)."""
     if isinstance(model, Mixture):
-        return MixtureRollout(model, chunk_rows, matmul_dtype)
-    return BatchedRollout(model, chunk_rows, matmul_dtype)
+        return MixtureRollout(model, chunk_rows, matmul_dtype, fused)
+    return BatchedRollout(model, chunk_rows, matmul_dtype, fused)
