@@ -24,8 +24,9 @@ def add_parsers(sub) -> None:
                    help=f"human futures per finalist (default 1024); a plan samples at most {MAX_PLAN_FUTURES} in all "
                         f"({N_CANDIDATES} × first stage + finalists × second stage)")
     p.add_argument("--precision", choices=PRECISIONS, default="auto",
-                   help="decoder matrix multiplies; auto: bfloat16 on CPUs with native bfloat16, else float32; "
-                        "int8 and float32-compiled: fused and compiled steps (CPU only, docs/planner.md)")
+                   help="decoder matrix multiplies; int8 and float32-compiled: fused and compiled steps (CPU only); "
+                        "auto (default): int8 on CPUs with int8 dot products, else float32-compiled, where a C++ "
+                        "compiler is found (docs/planner.md, Speed)")
     p.add_argument("--threads", type=_int_at_least(1, os.cpu_count() or 1),
                    help=f"CPU threads, 1..{os.cpu_count() or 1} (default: PyTorch's choice)")
     p.add_argument("--device", default="auto")

@@ -56,7 +56,7 @@ def _add_simulate(sub) -> None:
                    f"answering within {RAY_CONNECT_TIMEOUT_S:g} s (default: a new local instance)")
     p.add_argument("--device", default="cpu", help="the models' device: cpu (default), auto, cuda, cuda:N")
     p.add_argument("--precision", choices=PRECISIONS, default="auto", help="the planner's sampling precision (default "
-                   "auto: bfloat16 where the CPU has it; int8 and float32-compiled: fused and compiled, docs/planner.md)")
+                   "auto: int8 or float32-compiled, fused and compiled, where a C++ compiler is found; docs/planner.md)")
     p.add_argument("--out", default="simulation", help="output folder (default ./simulation): "
                    "episodes/episode_NNNNNN.parquet and summary.json; a rerun resumes")
     p.add_argument("--json", action="store_true")

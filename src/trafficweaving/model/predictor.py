@@ -65,12 +65,30 @@ def cpu_matrix_features() -> dict:
             "amx": bool(flags & {"amx_bf16", "amx_int8", "amx_tile"})}
 
 
+def compiler_available() -> bool:
+    """Whether ``torch.compile``'s CPU backend (Inductor) finds the C++ compiler that the compiled
+    precisions (:data:`COMPILED_PRECISIONS`) need."""
+    from torch._inductor.cpp_builder import get_cpp_compiler
+
+    try:
+        get_cpp_compiler()
+    except Exception:  # Inductor raises its own error types when no compiler is found
+        return False
+    return True
+
+
 def resolve_precision(precision: str, device: torch.device | str = "cpu") -> str:
-    """The precision that ``precision`` (one of :data:`PRECISIONS`) runs in: ``auto`` is bfloat16 on
-    CPUs with native bfloat16 (:func:`native_bfloat16`), else float32."""
+    """The precision that ``precision`` (one of :data:`PRECISIONS`) runs in. ``auto`` picks, among the
+    precisions whose plans decide as float32's do to the noise floor of two float32 plans
+    (docs/planner.md, Decision quality), the fastest measured on such a CPU (docs/planner.md,
+    Speed): on a CPU with a C++ compiler, int8 where it has int8 dot products
+    (:func:`cpu_matrix_features`), else float32-compiled; without a compiler, bfloat16 where
+    native (:func:`native_bfloat16`); else, and on other devices, float32."""
     if precision not in PRECISIONS:
         raise InputError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     if precision == "auto":
+        if torch.device(device).type == "cpu" and compiler_available():
+            return "int8" if cpu_matrix_features()["int8_dot_products"] else "float32-compiled"
         return "bfloat16" if native_bfloat16(device) else "float32"
     if precision in COMPILED_PRECISIONS and torch.device(device).type != "cpu":
         raise InputError(f"precision {precision} runs on the CPU only, the model is on {device} (expected auto, "
@@ -98,7 +116,7 @@ class HumanPredictor:
     :data:`PRECISIONS`; a float64 model always runs in float64): ``float32`` samples the model
     exactly as it is; ``bfloat16`` keeps the state and gate arithmetic in float32 and is about
     twice as fast on CPUs with native bfloat16, with slightly different numbers (docs/planner.md
-    measures the planner's decisions); ``auto`` is bfloat16 where native; ``int8`` (CPU only)
+    measures the planner's decisions); ``auto``: :func:`resolve_precision`; ``int8`` (CPU only)
     quantises the hidden state and runs the decoder's steps fused and compiled
     (:mod:`~trafficweaving.model.fused_decoder`; the first plan compiles for about 15 s);
     ``float32-compiled`` (CPU only) runs the same fused, compiled steps with float32 weights: the
