@@ -101,3 +101,18 @@ def test_common_random_numbers_give_every_candidate_each_samples_draws(variant):
     assert not torch.equal(apart[:, 0], apart[:, 1])
     torch.testing.assert_close(shared.mean(0), apart.mean(0), rtol=0, atol=0.15)
     torch.testing.assert_close(shared.std(0), apart.std(0), rtol=0.1, atol=0.05)
+
+
+@pytest.mark.parametrize("compiler, int8_dot_products, bfloat16, expected", [
+    (True, True, True, "int8"), (True, False, True, "float32-compiled"), (True, False, False, "float32-compiled"),
+    (False, True, True, "bfloat16"), (False, True, False, "float32")])
+def test_auto_precision_is_the_compiled_one_the_cpu_runs_fastest_where_a_compiler_is_found(
+        monkeypatch, compiler, int8_dot_products, bfloat16, expected):
+    import trafficweaving.model.predictor as predictor
+
+    monkeypatch.setattr(predictor, "compiler_available", lambda: compiler)
+    monkeypatch.setattr(predictor, "cpu_matrix_features", lambda: {"int8_dot_products": int8_dot_products})
+    monkeypatch.setattr(predictor, "native_bfloat16", lambda device="cpu": bfloat16 and torch.device(device).type == "cpu")
+    assert resolve_precision("auto") == expected
+    assert resolve_precision("auto", "cuda") == "float32"
+    assert resolve_precision("float32") == "float32"

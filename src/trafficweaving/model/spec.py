@@ -20,7 +20,7 @@ SHIPPED_MODELS = {  # --model name: file in the package (docs/model.md, "The shi
     "default": "default_cvae.pt",  # the authors' real-data model with hold modes, fine-tuned on the 30 real trials
     "simulated-real": "simulated_real_cvae.pt",  # no authors' weights: simulated drivers, then the 30 real trials
     "driver": "driver_cvae.pt",  # a driver: the default's recipe conditioned on a guess of the other car (docs/realism.md)
-    "fast": "fast_cvae.pt",  # the default distilled into a 32-unit, 8-component decoder: the full budget on a CPU (docs/fast_model.md)
+    "fast": "fast_cvae.pt",  # the default distilled into a 16-unit, 8-component decoder: the full budget on a CPU (docs/fast_model.md)
 }
 AUTHORS = "authors:"
 """The prefix of a spec naming the authors' weights."""
