@@ -23,6 +23,21 @@ def _cat(parts, axis: int):
     return torch.cat(parts, dim=axis) if isinstance(parts[0], torch.Tensor) else np.concatenate(parts, axis=axis)
 
 
+def _add(a, b, out):
+    return torch.add(a, b, out=out) if isinstance(out, torch.Tensor) else np.add(a, b, out=out)
+
+
+def _trapezoid(x0, rate0, rates, dt: float):
+    """``x [..., N]`` at steps 1..N from ``x0 [...]`` at step 0 and its rate of change ``rate0
+    [...]`` at step 0 and ``rates [..., N]`` at steps 1..N, by the trapezoid rule (the pairwise
+    sums are written into one buffer, not concatenated: the planner integrates ~10⁵ futures a plan)."""
+    half_sums = (torch.empty_like if isinstance(rates, torch.Tensor) else np.empty_like)(rates)
+    _add(rates[..., 1:], rates[..., :-1], half_sums[..., 1:])
+    _add(rates[..., :1], rate0[..., None], half_sums[..., :1])
+    half_sums *= 0.5 * dt
+    return x0[..., None] + _cumsum(half_sums, -1)
+
+
 def integrate_trapezoid(p0, v0, acc, dt: float = DT):
     """Positions and velocities from accelerations by the trapezoid rule along the last axis.
 
@@ -33,9 +48,11 @@ def integrate_trapezoid(p0, v0, acc, dt: float = DT):
     """
     if not isinstance(acc, torch.Tensor):
         acc, p0, v0 = (np.asarray(a, dtype=float) for a in (acc, p0, v0))
-    v = _cat([v0[..., None], v0[..., None] + _cumsum(0.5 * dt * (acc[..., 1:] + acc[..., :-1]), -1)], -1)
-    p = _cat([p0[..., None], p0[..., None] + _cumsum(0.5 * dt * (v[..., 1:] + v[..., :-1]), -1)], -1)
-    return p, v
+    shape = np.broadcast_shapes(tuple(p0.shape), tuple(v0.shape), tuple(acc.shape[:-1]))
+    p0, v0 = (a.expand(shape) if isinstance(a, torch.Tensor) else np.broadcast_to(a, shape) for a in (p0, v0))
+    v = _trapezoid(v0, acc[..., 0], acc[..., 1:], dt)
+    p = _trapezoid(p0, v0, v, dt)
+    return _cat([p0[..., None], p], -1), _cat([v0[..., None], v], -1)
 
 
 def trapezoid_step(p, v, a, a_next, dt: float = DT):
@@ -73,10 +90,14 @@ def future_states(present, accelerations, dt: float = DT):
         lead = np.broadcast_shapes(present.shape[:-1], accelerations.shape[:-2])
         present = np.broadcast_to(present, (*lead, 6))
         accelerations = np.broadcast_to(accelerations, (*lead, *accelerations.shape[-2:]))
-    acc = _cat([present[..., None, 4:6], accelerations], -2).swapaxes(-1, -2)  # [..., 2, N+1]
-    p, v = integrate_trapezoid(present[..., 0:2], present[..., 2:4], acc, dt)
-    stack = torch.stack if tensor else np.stack
-    return stack([p[..., 0, 1:], p[..., 1, 1:], v[..., 0, 1:], v[..., 1, 1:], acc[..., 0, 1:], acc[..., 1, 1:]], -1)
+    out = (torch.empty if tensor else np.empty)((*lead, accelerations.shape[-2], 6), dtype=accelerations.dtype,
+                                                **({"device": accelerations.device} if tensor else {}))
+    for axis in range(2):
+        acceleration = accelerations[..., axis]
+        velocity = _trapezoid(present[..., 2 + axis], present[..., 4 + axis], acceleration, dt)
+        out[..., axis], out[..., 2 + axis] = _trapezoid(present[..., axis], present[..., 2 + axis], velocity, dt), velocity
+        out[..., 4 + axis] = acceleration
+    return out
 
 
 def constant_acceleration_future(present, steps: int = HORIZON, dt: float = DT):
