@@ -155,3 +155,38 @@ def test_the_planner_plans_within_what_the_safety_layer_will_let_it_drive():
     assert (plan.window_costs[unsafe] >= 100_000).all()
     free = Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=replace(style, safety_layer=False))
     assert (free.plan(history, hold, cost).window_costs[unsafe] < 100_000).all()
+
+
+@pytest.mark.slow
+def test_a_compiled_planner_warms_up_once_before_its_first_episode_without_changing_it(monkeypatch):
+    """Planner.warm_up plans once (compiling the fused steps) at the first reset only, and leaves the
+    random generator as it was: the episode is the one driven without the warm-up."""
+    torch.manual_seed(0)
+    predictor = HumanPredictor(CVAE(), precision="float32-compiled")
+    made = []
+    plan = Planner.plan
+    monkeypatch.setattr(Planner, "plan", lambda self, *args, **kwargs: made.append(1) or plan(self, *args, **kwargs))
+
+    def episode(warm: bool) -> tuple[np.ndarray, int]:
+        policy = MPCPolicy(Planner(predictor), budget=Budget(1, 2, 2))
+        if not warm:
+            policy.warmed_up = True
+        world = World(_history(1))
+        made.clear()
+        for _ in range(2):  # the second episode does not warm up again
+            policy.reset(np.random.default_rng(0), world.states[:, :, 0], 0)
+        warm_ups = len(made)
+        for _ in range(HOLD_STEPS + 4):
+            world.step(np.stack([policy.act(world.history), np.zeros((1, 2))], axis=1))
+        assert policy.planner.rows_per_second is not None  # measured by the episode's plans, not the warm-up's
+        return world.history[0, 0], warm_ups
+
+    (warmed, warm_ups), (cold, none) = episode(True), episode(False)
+    assert (warm_ups, none) == (1, 0)
+    np.testing.assert_array_equal(warmed, cold)
+
+
+def test_a_planner_sampling_in_float32_has_nothing_to_warm_up(monkeypatch):
+    planner = Planner(HumanPredictor(CVAE()))
+    monkeypatch.setattr(Planner, "plan", lambda *args, **kwargs: pytest.fail("warm_up planned"))
+    planner.warm_up(_history(), Action.of(0.0, "right").index, lambda robot, human: robot[..., 0, 0] * 0)

@@ -21,7 +21,7 @@ import torch
 
 from .. import validate
 from ..errors import InputError
-from ..scenario import LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
+from ..scenario import DT, LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
 from .candidates import STEPS_PER_WINDOW, Action, rollout
 from .costs import Cost, PaperCost
 from .planner import Budget, Plan, Planner, check_cost, plan_options
@@ -32,6 +32,17 @@ HOLD_STEPS = 8
 """Steps the robot holds its lane at constant speed before its first plan."""
 ACCELERATION_COLUMNS = [STATE_NAMES.index("xdd"), STATE_NAMES.index("ydd")]
 """Where a state keeps the accelerations ``[xdd, ydd]`` an agent acts with."""
+
+
+def steady_history(present: np.ndarray, steps: int = HOLD_STEPS) -> np.ndarray:
+    """Both cars' states ``[steps, 2, 6]`` ending at ``present [2, 6]``, each car having held its
+    present speeds before (positions moved back at them; accelerations kept): a history to plan
+    from where none has been recorded yet (:meth:`~.planner.Planner.warm_up`)."""
+    back = np.arange(steps - 1, -1, -1.0)[:, None] * DT  # s before the present
+    history = np.repeat(present[None], steps, axis=0)
+    history[..., 0] -= back * present[None, :, 2]
+    history[..., 1] -= back * present[None, :, 3]
+    return history
 
 
 class MPCPolicy:
@@ -58,6 +69,7 @@ class MPCPolicy:
         self.latencies: list[float] = []
         self.fallen_back: DrivingStyle | None = None  # the fallback this episode plans in (None: the planner's style)
         self.safety_log: list[tuple[int, SafetyDecision]] = []  # (step, decision) of every window the safety layer changed
+        self.warmed_up = False  # whether the planner has made its warm-up plan (Planner.warm_up)
 
     def reset(self, rng: np.random.Generator, start: np.ndarray, me: int) -> None:
         """Start an episode from ``start [1, 2, 6]`` (both cars' states ``[x, y, xd, yd, xdd,
@@ -78,6 +90,10 @@ class MPCPolicy:
         self.next_fixed = self.hold
         self.plans, self.plan_steps, self.latencies, self.safety_log = [], [], [], []
         self.fallen_back = None
+        if not self.warmed_up:  # compiled precisions compile now, not in the first plan
+            self.planner.warm_up(steady_history(start[0, [self.me, 1 - self.me]]), self.hold, self.cost,
+                                 budget=self.budget, deadline=self.deadline)
+            self.warmed_up = True
         self.planner.generator.manual_seed(int(rng.integers(2**63)))
 
     def act(self, history: np.ndarray) -> np.ndarray:

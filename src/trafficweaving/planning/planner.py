@@ -24,6 +24,7 @@ import torch
 from .. import validate
 from ..dynamics import future_states
 from ..errors import InputError
+from ..model.predictor import COMPILED_PRECISIONS
 from ..scenario import DT, HORIZON, LANE_CENTRE_Y, STATE_NAMES
 from .candidates import N_ACTIONS, N_CANDIDATES, STEPS_PER_WINDOW, WINDOWS, Candidates, Kinematics, robot_candidates
 from .costs import Cost
@@ -165,6 +166,19 @@ class Planner:
         self.device, self.dtype = torch.device(human_model.device), human_model.dtype
         self.generator = torch.Generator(device=self.device).manual_seed(validate.integer("seed", seed, 0))
         self.rows_per_second: float | None = None  # measured futures sampled and scored per second
+
+    def warm_up(self, history, first_action: int, cost: Cost, budget: Budget | None = None,
+                deadline: float | None = None) -> None:
+        """Compile before the first plan that counts: where the human model samples with fused,
+        compiled decoder steps (precision ``int8`` or ``float32-compiled``, which compile on their
+        first call: seconds), one :meth:`plan` with these arguments is made and thrown away; the
+        random generator is left as it was and the measured sampling rate forgotten."""
+        if getattr(self.human_model, "precision", None) not in COMPILED_PRECISIONS:
+            return
+        state = self.generator.get_state()
+        self.plan(history, first_action, cost, budget=budget, deadline=deadline)
+        self.generator.set_state(state)
+        self.rows_per_second = None
 
     @property
     def kinematics(self) -> Kinematics:
