@@ -118,7 +118,8 @@ class HumanPredictor:
     twice as fast on CPUs with native bfloat16, with slightly different numbers (docs/planner.md
     measures the planner's decisions); ``auto``: :func:`resolve_precision`; ``int8`` (CPU only)
     quantises the hidden state and runs the decoder's steps fused and compiled
-    (:mod:`~trafficweaving.model.fused_decoder`; the first plan compiles for about 15 s);
+    (:mod:`~trafficweaving.model.fused_decoder`; the first call compiles for about 15 s, 2–4 s
+    from Inductor's on-disk cache);
     ``float32-compiled`` (CPU only) runs the same fused, compiled steps with float32 weights: the
     same samples as ``float32`` to rounding, and the fastest on CPUs without int8 dot products
     (docs/planner.md, Speed).

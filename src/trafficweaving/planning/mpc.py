@@ -224,11 +224,13 @@ class NonBlockingMPCPolicy(MPCPolicy):
     def warm_up(self, history: np.ndarray, plans: int = 3) -> None:
         """Make ``plans`` plans from ``history [t+1, 2, 6]`` (robot, human) in the planner thread
         and wait for them, so that a first real plan pays no lazy initialisation and the planner
-        has measured the planner thread's speed for its deadline. Nothing is kept."""
+        has measured the planner thread's speed for its deadline. Nothing else is kept, and
+        :meth:`reset` does not warm the planner up again (:meth:`~.planner.Planner.warm_up`)."""
         cost = self.fixed_cost or PaperCost(goal_y=LANE_CENTRE_Y[LANES[0]])
         for _ in range(validate.integer("plans", plans, 0)):
             self._executor.submit(self.planner.plan, history, 0, cost, budget=self.budget,
                                   deadline=self.deadline).result()
+        self.warmed_up = self.warmed_up or plans > 0
 
     @property
     def planning(self) -> bool:
