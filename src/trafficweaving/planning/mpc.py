@@ -25,7 +25,7 @@ from ..scenario import DT, LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
 from .candidates import STEPS_PER_WINDOW, Action, rollout
 from .costs import Cost, PaperCost
 from .planner import Budget, Plan, Planner, check_cost, plan_options
-from .safety import SafetyDecision, safe_action
+from .safety import SafetyDecision, braking_hard_ahead, safe_action
 from .styles import DrivingStyle
 
 HOLD_STEPS = 8
@@ -130,8 +130,11 @@ class MPCPolicy:
         ``style`` where the style has no safety layer, else the safety layer's decision
         (:func:`~.safety.safe_action`) from both cars' states ``history [t+1, 2, 6]`` (robot,
         human), preferring actions by ``window_costs [N_ACTIONS]`` (None: by closeness), planned in
-        the ``safety_fallback`` where it brakes as that style does. Every changed window is logged
-        in :attr:`safety_log`."""
+        the ``safety_fallback`` where it brakes as that style does, and where the human ahead in the
+        robot's lane brakes harder than ``style`` can and the fallback brakes harder
+        (:func:`~.safety.braking_hard_ahead`): a plan that can only brake gently behind a car braking
+        hard sees every in-lane future collide and turns back into the lane the human may take next.
+        Every changed window is logged in :attr:`safety_log`."""
         own = self.planner.style
         if not own.safety_layer:
             return proposed, style
@@ -139,7 +142,12 @@ class MPCPolicy:
         decision = safe_action(history[-1, 0], history[-1, 1], proposed, style.kinematics, window_costs, safety)
         if decision.overridden:
             self.safety_log.append((len(history) - 1, decision))
-        return decision.chosen, style if decision.kinematics is style.kinematics else own.safety_fallback
+        fallback = own.safety_fallback
+        if decision.kinematics is not style.kinematics or (
+                fallback is not None and fallback.kinematics.hardest_braking > style.kinematics.hardest_braking
+                and braking_hard_ahead(history[-1, 0], history[-1, 1], style.kinematics)):
+            return decision.chosen, fallback
+        return decision.chosen, style
 
     def plan_style(self, history: np.ndarray, first_action: int) -> DrivingStyle:
         """The driving style of the plan from both cars' states ``history [t+1, 2, 6]`` (robot,
