@@ -21,10 +21,10 @@ import torch
 
 from .. import validate
 from ..errors import InputError
-from ..scenario import DT, LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
+from ..scenario import LANE_CENTRE_Y, LANES, STATE_NAMES, lane_of
 from .candidates import STEPS_PER_WINDOW, Action, rollout
 from .costs import Cost, PaperCost
-from .planner import Budget, Plan, Planner, check_cost, plan_options
+from .planner import Budget, Plan, Planner, check_cost, example_history, plan_options
 from .safety import SafetyDecision, braking_hard_ahead, safe_action
 from .styles import DrivingStyle
 
@@ -32,17 +32,6 @@ HOLD_STEPS = 8
 """Steps the robot holds its lane at constant speed before its first plan."""
 ACCELERATION_COLUMNS = [STATE_NAMES.index("xdd"), STATE_NAMES.index("ydd")]
 """Where a state keeps the accelerations ``[xdd, ydd]`` an agent acts with."""
-
-
-def steady_history(present: np.ndarray, steps: int = HOLD_STEPS) -> np.ndarray:
-    """Both cars' states ``[steps, 2, 6]`` ending at ``present [2, 6]``, each car having held its
-    present speeds before (positions moved back at them; accelerations kept): a history to plan
-    from where none has been recorded yet (:meth:`~.planner.Planner.warm_up`)."""
-    back = np.arange(steps - 1, -1, -1.0)[:, None] * DT  # s before the present
-    history = np.repeat(present[None], steps, axis=0)
-    history[..., 0] -= back * present[None, :, 2]
-    history[..., 1] -= back * present[None, :, 3]
-    return history
 
 
 class MPCPolicy:
@@ -91,7 +80,7 @@ class MPCPolicy:
         self.plans, self.plan_steps, self.latencies, self.safety_log = [], [], [], []
         self.fallen_back = None
         if not self.warmed_up:  # compiled precisions compile now, not in the first plan
-            self.planner.warm_up(steady_history(start[0, [self.me, 1 - self.me]]), self.hold, self.cost,
+            self.planner.warm_up(example_history(), self.hold, self.cost,
                                  budget=self.budget, deadline=self.deadline)
             self.warmed_up = True
         self.planner.generator.manual_seed(int(rng.integers(2**63)))
