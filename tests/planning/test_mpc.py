@@ -67,25 +67,26 @@ def test_a_human_braking_hard_ahead_is_braked_for_in_the_safety_style_for_that_w
 
 
 def test_a_human_braking_harder_ahead_than_comfort_can_is_planned_for_with_the_safety_braking():
-    """Comfort first: the plan behind a human braking harder than the comfort kinematics can is made
-    in the safety style (its hardest braking at once), even where the layer keeps the proposed
-    window; not for a human braking within comfort, nor for one braking in the other lane."""
+    """Comfort first: behind a human braking harder than the comfort kinematics can, the plan is made
+    in the safety style (its hardest braking at once) even where the layer keeps the proposed window
+    (turning back into the empty lane); not for a human braking within comfort, nor for one braking
+    in the other lane."""
     first = STYLES["planner"]
     policy = MPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=first))
+    turn_back = Action.of(0.0, "left").index
+    robot = np.array([CUTOFF_X - 150.0, RIGHT, 26.0, 0.0, 0.0, 0.0])
+    policy.reset(np.random.default_rng(0), np.stack([robot, robot + [14.0, 0, 0, 0, 0, 0]])[None], 0)
+
+    def planned_in(human_xdd, human_lane=RIGHT, proposed=turn_back):
+        history = np.stack([robot, robot + [14.0, human_lane - RIGHT, -1.0, 0.0, human_xdd, 0.0]])[None]
+        return policy.check_window(history, proposed, policy.plan_style(history, proposed), None)
+
+    assert KINEMATICS["comfort"].hardest_braking < 8.0
+    assert planned_in(-8.0) == (turn_back, first.safety_fallback)
+    assert planned_in(-3.0) == (turn_back, first)
     keep = Action.of(0.0, "right").index
-    robot = np.array([CUTOFF_X - 150.0, RIGHT, 25.0, 0.0, 0.0, 0.0])
-    policy.reset(np.random.default_rng(0), np.stack([robot, robot + [60.0, 0, 0, 0, 0, 0]])[None], 0)
-
-    def planned_in(human_xdd, human_y=RIGHT):
-        human = np.array([robot[0] + 60.0, human_y, 25.0, 0.0, human_xdd, 0.0])
-        history = np.stack([robot, human])[None]
-        return policy.check_window(history, keep, policy.plan_style(history, keep), None)
-
-    assert KINEMATICS["comfort"].hardest_braking < 5.0 < KINEMATICS["safety"].hardest_braking
-    assert planned_in(-5.0) == (keep, first.safety_fallback)  # 60 m ahead: the window is safe, kept
-    assert planned_in(-3.0) == (keep, first)
-    assert planned_in(-5.0, human_y=LEFT) == (keep, first)
-    assert not policy.safety_log
+    assert planned_in(-8.0, human_lane=LEFT, proposed=keep) == (keep, first)
+    assert not policy.safety_log  # the layer kept the proposed window every time
 
 
 @pytest.mark.slow

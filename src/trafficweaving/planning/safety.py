@@ -227,4 +227,4 @@ def braking_hard_ahead(robot: np.ndarray, human: np.ndarray, kinematics: Kinemat
     """Whether the human, ahead of the robot in the robot's lane (present states ``robot [6]``,
     ``human [6]``), brakes harder than ``kinematics`` can."""
     same_lane = lane_of(np.array([robot[1]]))[0] == lane_of(np.array([human[1]]))[0]
-    return bool(same_lane and human[0] > robot[0] and -human[4] > kinematics.hardest_braking + 1e-9)
+    return bool(same_lane and human[0] > robot[0] and -human[4] > kinematics.hardest_braking)
