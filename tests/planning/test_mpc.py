@@ -66,14 +66,14 @@ def test_a_human_braking_hard_ahead_is_braked_for_in_the_safety_style_for_that_w
     assert policy.plan_style(calm[None], go) is first.fallback  # to the end of the episode
 
 
-def test_a_human_braking_harder_ahead_than_comfort_can_is_planned_for_with_the_safety_braking():
+def test_a_human_braking_harder_ahead_than_comfort_can_is_braked_for_in_lane_in_the_safety_style():
     """Comfort first: behind a human braking harder than the comfort kinematics can, the plan is made
-    in the safety style (its hardest braking at once) even where the layer keeps the proposed window
-    (turning back into the empty lane); not for a human braking within comfort, nor for one braking
-    in the other lane."""
+    in the safety style (its hardest braking at once) and the layer does not swerve into the empty
+    lane (the human may take it next): a proposed turn back becomes braking in lane. Not for a
+    human braking within comfort, nor for one braking in the other lane."""
     first = STYLES["planner"]
     policy = MPCPolicy(Planner(ConstantVelocityHuman(), Budget(1, 2, 2), style=first))
-    turn_back = Action.of(0.0, "left").index
+    turn_back, keep = Action.of(0.0, "left").index, Action.of(0.0, "right").index
     robot = np.array([CUTOFF_X - 150.0, RIGHT, 26.0, 0.0, 0.0, 0.0])
     policy.reset(np.random.default_rng(0), np.stack([robot, robot + [14.0, 0, 0, 0, 0, 0]])[None], 0)
 
@@ -82,11 +82,14 @@ def test_a_human_braking_harder_ahead_than_comfort_can_is_planned_for_with_the_s
         return policy.check_window(history, proposed, policy.plan_style(history, proposed), None)
 
     assert KINEMATICS["comfort"].hardest_braking < 8.0
-    assert planned_in(-8.0) == (turn_back, first.safety_fallback)
+    window, style = planned_in(-8.0)
+    assert style is first.safety_fallback and Action(window).lane == "right"
+    assert style.kinematics.accelerations[window // 2] == min(style.kinematics.accelerations)  # the hardest
+    assert policy.safety_log[-1][1].chosen == window
+    policy.safety_log.clear()
     assert planned_in(-3.0) == (turn_back, first)
-    keep = Action.of(0.0, "right").index
     assert planned_in(-8.0, human_lane=LEFT, proposed=keep) == (keep, first)
-    assert not policy.safety_log  # the layer kept the proposed window every time
+    assert not policy.safety_log  # the layer kept those windows
 
 
 @pytest.mark.slow

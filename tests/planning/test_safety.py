@@ -148,3 +148,20 @@ def test_the_next_window_is_judged_from_where_both_cars_will_be_when_it_starts()
     assert not far.any()  # 50 m apart in their own lanes: every window passes
     cutting_in = unsafe_next(state(-62, RIGHT), human, SETTLED, SETTLED)
     assert cutting_in[ACCELERATE_RIGHT] and not cutting_in.all()  # not accelerating into it; braking passes
+
+
+def test_behind_a_human_braking_hard_the_layer_brakes_in_lane_and_the_planner_is_told_so():
+    """A human 14 m ahead in the robot's lane brakes at 8 m/s², harder than the comfort kinematics
+    can: the empty other lane is no escape (the human may change into it next), so a proposed
+    turn back is replaced by braking in lane; farther back, where braking in lane is safe, the
+    planner is told that every turn back would be rejected (unsafe_next)."""
+    robot, human = state(-90, RIGHT, v=26.0), state(-76, RIGHT, v=25.0, a=-8.0)
+    turn_back = Action.of(0.0, "left").index
+    decision = safe_action(robot, human, turn_back, COMFORT, safety=SAFETY)
+    assert decision.overridden and Action(decision.chosen).lane == "right"
+    assert decision.kinematics.accelerations[decision.chosen // 2] < 0
+    farther = state(-50, RIGHT, v=25.0, a=-8.0)  # 40 m ahead: braking in lane is safe, a turn back is not
+    leaves = np.array([Action(a).lane == "left" for a in range(N_ACTIONS)])
+    np.testing.assert_array_equal(unsafe_next(robot, farther, COMFORT, SAFETY), leaves)
+    calm = state(-76, RIGHT, v=25.0, a=-3.0)  # within what comfort can brake for: turning back stays an option
+    assert not safe_action(robot, calm, turn_back, COMFORT, safety=SAFETY).overridden

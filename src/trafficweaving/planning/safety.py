@@ -171,7 +171,8 @@ def unsafe_next(robot_next: np.ndarray, human: np.ndarray, kinematics: Kinematic
     ``human [6]`` by :func:`predicted_human`; all False where none would be safe (the layer's
     least-bad choice is made when the window starts). Responses brake as ``braking``."""
     human_next = predicted_human(human, RESPONSE_TIME)
-    unsafe = np.isfinite(action_times(robot_next, human_next, kinematics, braking)[0])
+    unsafe = np.isfinite(_staying_behind(action_times(robot_next, human_next, kinematics, braking), robot_next,
+                                         human_next, kinematics)[0])
     return unsafe if not unsafe.all() else np.zeros(N_ACTIONS, dtype=bool)
 
 
@@ -185,7 +186,8 @@ def safe_action(robot: np.ndarray, human: np.ndarray, proposed: int, kinematics:
     either (:func:`_least_bad`). Responses brake as ``safety`` (None: ``kinematics``)."""
     braking = safety or kinematics
     options = [kinematics] + ([safety] if safety is not None and safety != kinematics else [])
-    times = np.stack([action_times(robot, human, k, braking) for k in options])  # [K, 2, A]
+    times = np.stack([_staying_behind(action_times(robot, human, k, braking), robot, human, kinematics)
+                      for k in options])  # [K, 2, A]
     proposed_safe = bool(np.isinf(times[0, 0, proposed]))
     if proposed_safe:
         return SafetyDecision(proposed, proposed, kinematics, True, True, np.inf)
@@ -221,6 +223,19 @@ def _least_bad(times: np.ndarray, robot: np.ndarray, options: list[Kinematics]) 
               for k, option in enumerate(options) for a in range(N_ACTIONS)]
     *_, k, a = min(ranked)
     return k, a
+
+
+def _staying_behind(times: np.ndarray, robot: np.ndarray, human: np.ndarray, kinematics: Kinematics) -> np.ndarray:
+    """``times [2, N_ACTIONS]`` (:func:`action_times`) with every action that leaves the robot's lane
+    counted as meeting the human now where the human brakes hard ahead of it
+    (:func:`braking_hard_ahead`): behind a car braking hard the response is braking in lane, not
+    a swerve into the other lane, which the human (both cars swap lanes) may take next."""
+    if not braking_hard_ahead(robot, human, kinematics):
+        return times
+    lane = LANES.index(str(lane_of(np.array([robot[1]]))[0]))
+    times = times.copy()
+    times[:, np.arange(N_ACTIONS) % len(LANES) != lane] = 0.0
+    return times
 
 
 def braking_hard_ahead(robot: np.ndarray, human: np.ndarray, kinematics: Kinematics) -> bool:
