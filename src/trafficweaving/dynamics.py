@@ -48,8 +48,6 @@ def integrate_trapezoid(p0, v0, acc, dt: float = DT):
     """
     if not isinstance(acc, torch.Tensor):
         acc, p0, v0 = (np.asarray(a, dtype=float) for a in (acc, p0, v0))
-    shape = np.broadcast_shapes(tuple(p0.shape), tuple(v0.shape), tuple(acc.shape[:-1]))
-    p0, v0 = (a.expand(shape) if isinstance(a, torch.Tensor) else np.broadcast_to(a, shape) for a in (p0, v0))
     v = _trapezoid(v0, acc[..., 0], acc[..., 1:], dt)
     p = _trapezoid(p0, v0, v, dt)
     return _cat([p0[..., None], p], -1), _cat([v0[..., None], v], -1)

@@ -43,7 +43,8 @@ def _add_simulate(sub) -> None:
                         help=f"the planner's real-time deadline: plan within this many seconds (default {REPLAN_PERIOD_S}, "
                              f"the replanning period)")
     timing.add_argument("--full-budget", dest="deadline", action="store_const", const=None,
-                        help="plan with the paper's fixed sample counts however long it takes (~1-2 s a plan on a CPU)")
+                        help="plan with the paper's fixed sample counts however long it takes (on two CPU cores "
+                             "~1-3 s a plan with default, 0.22-0.44 s with --model fast: docs/fast_model.md)")
     p.add_argument("--workers", type=POSITIVE, default=1, help=f"episodes run at once (default 1: in this process), "
                    f"at most {WORKERS_PER_CPU} per CPU core here ({WORKERS_PER_CPU * (os.cpu_count() or 1)}), or "
                    f"{MAX_EPISODES} on a Ray cluster")

@@ -19,8 +19,11 @@ whatever the human plausibly does meanwhile:
 action (by the last plan's costs of its window-1 actions, :attr:`~.planner.Plan.window_costs`);
 where none is safe, the least-bad one: the action whose best response meets the human's worst
 plausible motion latest, ties broken by hardest braking in the lane the robot is in (a
-minimal-risk manoeuvre). So the robot never accelerates towards a car moving into its lane ahead
-of it unless it stays clear whatever that car does. The planner plans within what the layer will
+minimal-risk manoeuvre). Behind a human braking harder than the robot's kinematics can
+(:func:`braking_hard_ahead`) a turn into the other lane counts as no escape (:func:`_staying_behind`):
+the human, which swaps lanes too, may take that lane next, so the robot brakes in its own. So the
+robot never accelerates towards a car moving into its lane ahead of it unless it stays clear
+whatever that car does. The planner plans within what the layer will
 let it drive: :func:`unsafe_next` marks the next windows it is expected to reject
 (:data:`UNSAFE_NEXT_COST`). Assumptions and limits: docs/planner.md, Safety layer.
 """
