@@ -11,7 +11,7 @@ speed: compare variants within one run, on an otherwise idle machine.
     python benchmarks/ablate_rules.py [--episodes 20] [--scenario-episodes 6] [--seed 4] [--workers 2]
         [--humans synthetic model:driver ...] [--rules default no-safety-layer ...] [--json]
 
-The table in docs/planner.md (Rules, ablation) is this script's output.
+The table in docs/driving.md (Ablation) is this script's output.
 """
 
 from __future__ import annotations
@@ -37,7 +37,6 @@ def _everywhere(style: DrivingStyle, **changes) -> DrivingStyle:
 ABLATIONS = {
     "default": lambda s: s,
     "no safety layer": lambda s: _everywhere(s, safety_layer=False),
-    "no turning-back cost": lambda s: _everywhere(s, turn_back_cost=0.0),
     "no set-out rule": lambda s: _everywhere(s, set_out_gap=0.0),
     "no stand-off exit": lambda s: _everywhere(s, standoff_exit_cost=0.0),
     "no progress cost": lambda s: _everywhere(s, progress_cost=0.0),

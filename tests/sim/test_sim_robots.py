@@ -154,8 +154,10 @@ def test_the_planning_robots_drive_in_their_styles():
     assert robot_planner("planner-decisive").style == robot_planner("planner-cv").style == STYLES["planner-decisive"]
     first = robot_planner("planner").style
     assert first == STYLES["planner"] and first.kinematics == KINEMATICS["comfort"]
-    assert first.fallback == replace(STYLES["planner-decisive"], kinematics=KINEMATICS["safety"],
+    assert first.fallback == replace(STYLES["planner-decisive"], kinematics=KINEMATICS["safety"], turn_back_cost=0.0,
                                      standoff_exit_cost=first.standoff_exit_cost, progress_cost=first.progress_cost)
+    assert first.turn_back_cost == first.fallback.turn_back_cost == first.safety_fallback.turn_back_cost == 0
+    assert STYLES["planner-decisive"].turn_back_cost == STYLES["planner-comfort"].turn_back_cost > 0
     paper = STYLES["planner-paper"]
     assert robot_planner("planner-paper").style == paper and paper.kinematics == KINEMATICS["paper"]
     assert paper.turn_back_cost == 0 and paper.risk == 1  # the paper's objective, unchanged

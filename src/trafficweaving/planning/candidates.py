@@ -99,7 +99,7 @@ KINEMATICS = {
 :data:`trafficweaving.sim.score.COMFORT_LIMITS` from any state: accelerations 0, +2, −2, −4 m/s²
 ramped at 4 m/s³, time-optimal lateral manoeuvres within 4.5 m/s² and 7.0 m/s³ (a lane change
 from rest takes 2.7 s); ``safety``, the settled accelerations with the comfort steering, to brake
-as hard as ``settled`` while keeping to the comfort limits sideways (docs/planner.md)."""
+as hard as ``settled`` while keeping to the comfort limits sideways (docs/driving.md)."""
 
 N_ACTIONS = len(ACCELERATIONS) * len(LANES)
 """Actions per window (8)."""

@@ -25,7 +25,7 @@ the human, which swaps lanes too, may take that lane next, so the robot brakes i
 robot never accelerates towards a car moving into its lane ahead of it unless it stays clear
 whatever that car does. The planner plans within what the layer will
 let it drive: :func:`unsafe_next` marks the next windows it is expected to reject
-(:data:`UNSAFE_NEXT_COST`). Assumptions and limits: docs/planner.md, Safety layer.
+(:data:`UNSAFE_NEXT_COST`). Assumptions and limits: docs/driving.md, Safety layer.
 """
 
 from __future__ import annotations

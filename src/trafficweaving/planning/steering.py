@@ -13,7 +13,7 @@ minimised over ``T`` (vectorised golden-section search on ``log T``). Past ``T``
 (the world integrates them by the trapezoid rule), so a correction shorter than a few steps is not
 executed as solved: from a lane centre the residue of the sampling is re-solved every window into
 ±0.7 m/s² of lateral chatter (ρ = 1000) that never settles; with ``T ≥ 0.6 s`` the same corrections
-decay to rest (docs/planner.md, Driving styles).
+decay to rest (docs/driving.md, Driving styles).
 
 :func:`jerk_limited_steer` is the comfort kinematics' alternative: the time-optimal steering within
 bounds on the lateral acceleration and jerk (jerk switching between its bounds rather than

@@ -6,7 +6,7 @@ rules add to its cost (:func:`rule_costs`: turning back, setting out beside the 
 stand-off exit, progress in the goal lane) and which style it falls back on
 (:meth:`DrivingStyle.fallback_for`). :data:`STYLES` holds the planning robots' styles by their
 ``--robot`` names; every rule is off in the paper's. Each style, rule and constant, with the reason
-for its value: docs/planner.md, Driving styles.
+for its value: docs/driving.md, Driving styles.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from ..scenario import (CAR_WIDTH, CUTOFF_X, DT, HORIZON, LANE_CENTRE_Y, LANES,
 from .candidates import KINEMATICS, Action, Candidates, Kinematics, acceleration_indices
 
 TURN_BACK_COST = 300.0
-"""The decisive styles' cost of turning back from a lane change (cost units of
+"""The decisive and comfort styles' cost of turning back from a lane change (cost units of
 :class:`~.costs.PaperCost`: about 0.6 m of lane offset held over the horizon)."""
 COMMIT_OFFSET = 1.0
 """How far (m) from the other lane's centre the decisive styles' robot is committed to its lane change."""
@@ -73,7 +73,7 @@ decisive style: its quicker lane change still crosses the swap line 0.7 s before
 
 @dataclass(frozen=True)
 class DrivingStyle:
-    """How a planning robot drives (docs/planner.md, Driving styles); the defaults are the paper's.
+    """How a planning robot drives (docs/driving.md, Driving styles); the defaults are the paper's.
 
     ``kinematics``: how its candidates move the robot. ``turn_back_cost``: cost per window that
     leaves the goal lane after one that targeted it, once the robot is ``commit_offset`` m or more
@@ -208,9 +208,10 @@ class DrivingStyle:
 _DECISIVE = DrivingStyle(KINEMATICS["settled"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP, safety_layer=True)
 _COMFORT = DrivingStyle(KINEMATICS["comfort"], TURN_BACK_COST, commit_offset=COMMIT_OFFSET, set_out_gap=SET_OUT_GAP,
                         set_out_until=2.5, safety_layer=True)
-_COMFORT_FIRST_RULES = {"standoff_exit_cost": STANDOFF_EXIT_COST, "progress_cost": PROGRESS_COST}
-"""What the ``planner`` style and its fallbacks add to the comfort and decisive styles: the stand-off
-exit, and getting going again in the goal lane."""
+_COMFORT_FIRST_RULES = {"standoff_exit_cost": STANDOFF_EXIT_COST, "progress_cost": PROGRESS_COST, "turn_back_cost": 0.0}
+"""What the ``planner`` style and its fallbacks change in the comfort and decisive styles: the
+stand-off exit, and getting going again in the goal lane, added; the turning-back cost dropped
+(with the safety layer and the stand-off exit it changes no outcome: docs/driving.md, Ablation)."""
 STYLES = {
     "planner": replace(_COMFORT, **_COMFORT_FIRST_RULES,
                        fallback=replace(_DECISIVE, kinematics=KINEMATICS["safety"], **_COMFORT_FIRST_RULES),
@@ -221,7 +222,7 @@ STYLES = {
     "planner-comfort": _COMFORT,
     "planner-cautious": replace(_DECISIVE, risk=0.2),
 }
-"""The planning robots' driving styles by their ``--robot`` names (docs/planner.md, Driving
+"""The planning robots' driving styles by their ``--robot`` names (docs/driving.md, Driving
 styles): ``planner`` comfort first (comfortable until time runs short or a stand-off needs
 a way out: then it falls back on the decisive style's shorter set-out check and its accelerations,
 with comfortable steering, as it brakes where its safety layer needs to; making room beside the

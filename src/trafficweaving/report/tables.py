@@ -61,7 +61,7 @@ CLOSED_LOOP_NOTES = (
     "95 % interval; near collisions: episodes with a step inside the paper's collision cost; smallest gap: the least "
     "longitudinal distance between the cars while they overlap laterally; lane reversals: the robot's sideways motion "
     "turning back, mean per episode; comfort: episodes with no step over nuPlan's comfort limits; safety overrides: "
-    "episodes in which the planner's safety layer changed a window (docs/planner.md, Safety layer), in brackets the "
+    "episodes in which the planner's safety layer changed a window (docs/driving.md, Safety layer), in brackets the "
     "windows where no action was safe.")
 
 
